@@ -1,0 +1,50 @@
+"""Run every benchmark on one core and print the figures with their targets."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import platform
+import sys
+import time
+
+BENCHMARKS = ["bench_radio", "bench_world"]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
+    parser.add_argument("names", nargs="*", help=f"subset of {', '.join(BENCHMARKS)}")
+    parser.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
+    args = parser.parse_args()
+    unknown = set(args.names) - set(BENCHMARKS)
+    if unknown:
+        parser.error(f"unknown benchmark(s): {', '.join(sorted(unknown))}")
+
+    import torch
+
+    torch.set_num_threads(1)
+    rows = []
+    for name in args.names or BENCHMARKS:
+        print(f"running {name} ...", file=sys.stderr, flush=True)
+        module = importlib.import_module(f"benchmarks.{name}")
+        for figure in module.run():
+            rows.append(figure)
+            print(f"{figure.name:<62} {figure.value:>14,.0f} {figure.unit:<10} {figure.verdict}")
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as out:
+            json.dump(
+                {
+                    "when": time.strftime("%Y-%m-%d %H:%M:%S"),
+                    "machine": f"{platform.machine()} {os.cpu_count()} cores",
+                    "figures": [vars(figure) for figure in rows],
+                },
+                out,
+                indent=2,
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,35 @@
+"""Timing helpers shared by the benchmarks."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+
+@dataclass
+class Figure:
+    name: str
+    value: float
+    unit: str
+    target: float | None = None  # higher is better unless lower_is_better
+    lower_is_better: bool = False
+
+    @property
+    def verdict(self) -> str:
+        if self.target is None:
+            return ""
+        met = self.value <= self.target if self.lower_is_better else self.value >= self.target
+        relation = "<=" if self.lower_is_better else ">="
+        return f"{'met' if met else 'MISSED'} (target {relation} {self.target:,.0f})"
+
+
+def best_rate(work: Callable[[], int], repeats: int = 5, min_seconds: float = 0.5) -> float:
+    """Items per second of ``work`` (which returns how many items it did): best of repeats."""
+    best = 0.0
+    for _ in range(repeats):
+        items, start = 0, time.perf_counter()
+        while (elapsed := time.perf_counter() - start) < min_seconds:
+            items += work()
+        best = max(best, items / elapsed)
+    return best

@@ -1,0 +1,209 @@
+"""The ``jamnav`` command line. Each sub-command parses, calls core code, and prints.
+
+Errors a user can cause (bad arguments, bad files) end with one line on stderr and exit code 2,
+never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from shared.radio import RadioModel
+from shared.scenario import Scenario, ScenarioError, load_scenario
+
+
+class UsageError(Exception):
+    """A problem with the user's input, reported as one line."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """Reads "-12.5,-33" as a value, not an option: coordinates are often negative."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-\.?\d[\d.,eE+-]*$")
+
+
+# -- argument helpers -------------------------------------------------------------------------
+def _numbers(text: str, count: int, what: str) -> list[float]:
+    parts = text.split(",")
+    try:
+        values = [float(part) for part in parts]
+    except ValueError:
+        raise UsageError(f"{what} {text!r}: expected {count} comma-separated numbers") from None
+    if len(values) != count or not all(math.isfinite(v) for v in values):
+        raise UsageError(f"{what} {text!r}: expected {count} finite comma-separated numbers")
+    return values
+
+
+def _add_scenario(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--scenario", default=None, metavar="NAME|PATH",
+        help="scenario name under scenarios/ or a TOML file (default: icc2021)",
+    )
+
+
+def _add_jammer(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument(
+        "--jammer", metavar="X,Y,P",
+        help="jammer position (m) and nominal power (W); keeps the scenario's jammer height",
+    )
+    group.add_argument("--no-jammer", action="store_true", help="no jammer at all")
+
+
+def scenario_with_jammer(args: argparse.Namespace) -> Scenario:
+    """The scenario named by --scenario with --jammer/--no-jammer applied and validated."""
+    scenario = load_scenario(args.scenario)
+    if getattr(args, "no_jammer", False):
+        return scenario.without_jammer()
+    if getattr(args, "jammer", None):
+        x, y, power = _numbers(args.jammer, 3, "--jammer")
+        if power < 0:
+            raise UsageError(f"--jammer {args.jammer!r}: power must be >= 0 W")
+        if not scenario.area.contains(x, y):
+            area = scenario.area
+            raise UsageError(
+                f"--jammer {args.jammer!r}: position outside the area "
+                f"[{area.x_min:g}, {area.x_max:g}] x [{area.y_min:g}, {area.y_max:g}]"
+            )
+        return scenario.with_jammer(x, y, power)
+    return scenario
+
+
+def _read_points(args: argparse.Namespace) -> np.ndarray:
+    if args.at:
+        return np.array([_numbers(text, 2, "--at") for text in args.at])
+    source = args.points_json
+    try:
+        text = sys.stdin.read() if source == "-" else Path(source).read_text(encoding="utf-8")
+        data = json.loads(text)
+    except OSError as exc:
+        raise UsageError(f"--points-json {source}: {exc.strerror}") from None
+    except json.JSONDecodeError as exc:
+        raise UsageError(f"--points-json {source}: not valid JSON ({exc.msg})") from None
+    points = []
+    for item in data if isinstance(data, list) else [None]:
+        if isinstance(item, dict) and {"x", "y"} <= item.keys():
+            item = [item["x"], item["y"]]
+        if (
+            not isinstance(item, list | tuple)
+            or len(item) != 2
+            or not all(isinstance(v, int | float) and math.isfinite(v) for v in item)
+        ):
+            raise UsageError(
+                f"--points-json {source}: expected a list of [x, y] or {{\"x\", \"y\"}} "
+                "with finite numbers"
+            )
+        points.append([float(item[0]), float(item[1])])
+    return np.array(points, dtype=np.float64).reshape(-1, 2)
+
+
+# -- commands -----------------------------------------------------------------------------------
+def cmd_scenario_show(args: argparse.Namespace) -> int:
+    scenario = load_scenario(args.scenario)
+    data = scenario.model_dump(mode="json")
+    if args.json:
+        print(json.dumps(data, indent=2))
+        return 0
+    for section, values in data.items():
+        if not isinstance(values, dict):
+            print(f"{section} = {values}")
+            continue
+        print(f"[{section}]")
+        for key, value in values.items():
+            print(f"  {key} = {value}")
+    return 0
+
+
+def cmd_sinr(args: argparse.Namespace) -> int:
+    scenario = scenario_with_jammer(args)
+    points = _read_points(args)
+    radio = RadioModel(scenario)
+    reading = radio.evaluate(points, radio.default_jammer)
+    rows = [
+        {
+            "x": float(x),
+            "y": float(y),
+            "sinr_db": round(float(db), 6),
+            "level": int(level),
+            "serving_gbs": int(serving),
+        }
+        for (x, y), db, level, serving in zip(
+            points, reading.sinr_db, reading.level, reading.serving_gbs, strict=True
+        )
+    ]
+    print(json.dumps(rows))
+    return 0
+
+
+def cmd_map(args: argparse.Namespace) -> int:
+    from jamnav.plots import save_coverage_map
+
+    scenario = scenario_with_jammer(args)
+    out = Path(args.out)
+    if out.suffix.lower() != ".png":
+        raise UsageError(f"--out {args.out}: the map is written as PNG; name it *.png")
+    if not 20 <= args.resolution <= 2000:
+        raise UsageError("--resolution must be between 20 and 2000")
+    share = save_coverage_map(scenario, RadioModel.jammer_of(scenario), out, args.resolution)
+    print(f"wrote {out} (covered {share:.1%} of the area)", file=sys.stderr)
+    return 0
+
+
+# -- parser -----------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="jamnav", description="Jamming-resilient path planning for many UAVs."
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    scenario = commands.add_parser("scenario", help="inspect scenario files")
+    scenario_commands = scenario.add_subparsers(dest="scenario_command", required=True)
+    show = scenario_commands.add_parser("show", help="print the effective scenario")
+    _add_scenario(show)
+    show.add_argument("--json", action="store_true", help="print JSON")
+    show.set_defaults(handler=cmd_scenario_show)
+
+    sinr = commands.add_parser("sinr", help="SINR, level and serving GBS at points")
+    _add_scenario(sinr)
+    _add_jammer(sinr)
+    where = sinr.add_mutually_exclusive_group(required=True)
+    where.add_argument("--at", nargs="+", metavar="X,Y", help="points as X,Y")
+    where.add_argument(
+        "--points-json", metavar="FILE|-", help='JSON list of [x, y] or {"x", "y"}; - = stdin'
+    )
+    sinr.set_defaults(handler=cmd_sinr)
+
+    coverage = commands.add_parser("map", help="coverage map as in the paper's Fig. 3")
+    _add_scenario(coverage)
+    _add_jammer(coverage)
+    coverage.add_argument("--out", required=True, metavar="FILE.png")
+    coverage.add_argument("--resolution", type=int, default=301, help="grid points per side")
+    coverage.set_defaults(handler=cmd_map)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.handler(args)
+    except (UsageError, ScenarioError) as exc:
+        print(f"jamnav: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("jamnav: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,67 @@
+"""Figures in the style of the paper's Fig. 3: coverage in yellow, GBSs green, jammer red."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.colors import ListedColormap  # noqa: E402
+
+from shared.radio import JammerParams, RadioModel  # noqa: E402
+from shared.scenario import Scenario  # noqa: E402
+
+_COVERAGE_COLOURS = ListedColormap(["white", "#f5e663"])
+
+
+def jammer_title(jammer: JammerParams | None) -> str:
+    if jammer is None:
+        return "No jammer"
+    return f"Jammer at ({jammer.x:g}, {jammer.y:g}), $P_J$ = {jammer.power_w:g} W"
+
+
+def draw_coverage(
+    ax, scenario: Scenario, jammer: JammerParams | None, resolution: int = 301
+) -> float:
+    """Draw the coverage map on ``ax``; returns the covered share of the area."""
+    radio = RadioModel(scenario)
+    xs, ys, reading = radio.grid(scenario, resolution, jammer)
+    covered = reading.level > 0
+    area = scenario.area
+    ax.imshow(
+        covered.astype(np.int8),
+        origin="lower",
+        extent=(area.x_min, area.x_max, area.y_min, area.y_max),
+        cmap=_COVERAGE_COLOURS,
+        vmin=0,
+        vmax=1,
+        interpolation="nearest",
+    )
+    gbs = radio.gbs_xy
+    ax.plot(gbs[:, 0], gbs[:, 1], "^", color="tab:green", markersize=9, label="GBS")
+    if jammer is not None:
+        ax.plot([jammer.x], [jammer.y], "^", color="tab:red", markersize=11, label="jammer")
+    ax.set_xlim(area.x_min, area.x_max)
+    ax.set_ylim(area.y_min, area.y_max)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    share = float(covered.mean())
+    ax.set_title(f"{jammer_title(jammer)} — covered {share:.0%}", fontsize=10)
+    return share
+
+
+def save_coverage_map(
+    scenario: Scenario, jammer: JammerParams | None, out: Path, resolution: int = 301
+) -> float:
+    fig, ax = plt.subplots(figsize=(5.2, 5.2))
+    share = draw_coverage(ax, scenario, jammer, resolution)
+    ax.legend(loc="upper right", fontsize=8, framealpha=0.9)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return share

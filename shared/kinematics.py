@@ -1,0 +1,81 @@
+"""UAV kinematics: the permissible action set under (P1.d) and (P1.e), propagation, and the
+closest approach of two straight motions within one step (used for collisions and R_c)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from shared.scenario import Scenario
+
+
+def wrap_angle(angle: np.ndarray) -> np.ndarray:
+    """Angle(s) wrapped to [-pi, pi)."""
+    return (np.asarray(angle) + math.pi) % (2.0 * math.pi) - math.pi
+
+
+class ActionSet:
+    """The sampled action space A_t: speeds x heading changes, plus hovering.
+
+    Speeds are spaced exponentially in (0, v_max] (fine control near the destination, as in
+    CADRL); heading changes are spread evenly over [-dt*T_r, +dt*T_r]. Action 0 is hovering
+    (speed 0, heading kept), so the set is never empty and always permissible.
+    """
+
+    def __init__(self, scenario: Scenario):
+        uav = scenario.uav
+        self.max_speed = uav.max_speed_mps
+        self.max_turn = math.radians(uav.turn_rate_deg_s) * scenario.timing.step_s
+        n = uav.speed_choices
+        fractions = (np.exp(np.arange(1, n + 1) / n) - 1.0) / (math.e - 1.0)
+        turns = (
+            np.linspace(-self.max_turn, self.max_turn, uav.heading_choices)
+            if uav.heading_choices > 1
+            else np.zeros(1)
+        )
+        speed_grid, turn_grid = np.meshgrid(fractions * self.max_speed, turns, indexing="ij")
+        self.speeds = np.concatenate([[0.0], speed_grid.ravel()])
+        self.turns = np.concatenate([[0.0], turn_grid.ravel()])
+
+    def __len__(self) -> int:
+        return self.speeds.shape[0]
+
+    def candidates(self, heading: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Speeds and headings of every action for UAVs at ``heading`` (...,): shape (..., A)."""
+        heading = np.asarray(heading, dtype=np.float64)[..., None]
+        speeds = np.broadcast_to(self.speeds, heading.shape[:-1] + self.speeds.shape)
+        return speeds, wrap_angle(heading + self.turns)
+
+    def clip(
+        self, speed: np.ndarray, heading: np.ndarray, current_heading: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The nearest permissible command: speed in [0, v_max], turn within +-dt*T_r."""
+        speed = np.clip(np.nan_to_num(speed, nan=0.0), 0.0, self.max_speed)
+        turn = np.clip(
+            wrap_angle(np.nan_to_num(heading, nan=0.0) - current_heading),
+            -self.max_turn,
+            self.max_turn,
+        )
+        # Hovering keeps the heading: a stopped UAV has no direction of travel to turn from.
+        new_heading = np.where(speed > 0, wrap_angle(current_heading + turn), current_heading)
+        return speed, new_heading
+
+
+def velocity_of(speed: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    return np.stack([speed * np.cos(heading), speed * np.sin(heading)], axis=-1)
+
+
+def closest_approach(
+    relative_position: np.ndarray, relative_velocity: np.ndarray, duration: float
+) -> np.ndarray:
+    """Minimum distance over [0, duration] of two points moving straight at constant velocity.
+
+    ``relative_position`` and ``relative_velocity`` have shape (..., 2); returns shape (...).
+    """
+    speed_sq = np.sum(relative_velocity * relative_velocity, axis=-1)
+    toward = -np.sum(relative_position * relative_velocity, axis=-1)
+    time = np.clip(np.divide(toward, speed_sq, out=np.zeros_like(toward), where=speed_sq > 0),
+                   0.0, duration)
+    closest = relative_position + relative_velocity * time[..., None]
+    return np.sqrt(np.sum(closest * closest, axis=-1))

@@ -1,0 +1,222 @@
+"""Scenario: every number of the simulated world, loaded from a TOML file.
+
+The paper fixes some values (GBS power, heights, antenna tilt, noise, SINR threshold); the rest
+are choices documented next to each value in ``scenarios/icc2021.toml``. Nothing in the code
+hard-codes a number that a scenario file can set.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from functools import cached_property
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised only on Python 3.10
+    import tomli as tomllib
+
+SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+DEFAULT_SCENARIO = "icc2021"
+
+Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class ScenarioError(ValueError):
+    """A scenario file that cannot be used; the message is one line naming file and field."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Area(_Strict):
+    x_min: Finite
+    x_max: Finite
+    y_min: Finite
+    y_max: Finite
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Area:
+        if self.x_min >= self.x_max or self.y_min >= self.y_max:
+            raise ValueError("area needs x_min < x_max and y_min < y_max")
+        return self
+
+    def contains(self, x: float, y: float) -> bool:
+        return self.x_min <= x <= self.x_max and self.y_min <= y <= self.y_max
+
+
+class Gbs(_Strict):
+    positions: list[tuple[Finite, Finite]] = Field(min_length=1)
+    height_m: Positive
+    power_w: Positive
+    tilt_deg: Finite
+    beamwidth_3db_deg: Positive
+    max_attenuation_db: NonNegative
+
+
+class Uav(_Strict):
+    altitude_m: Positive
+    radius_m: Positive
+    max_speed_mps: Positive
+    turn_rate_deg_s: Positive
+    speed_choices: int = Field(ge=1, le=32)
+    heading_choices: int = Field(ge=1, le=63)
+    arrival_tolerance_m: Positive
+
+
+class Timing(_Strict):
+    step_s: Positive
+    disconnection_limit_s: Positive
+    episode_limit_s: Positive
+
+    @cached_property
+    def disconnection_limit_steps(self) -> int:
+        """n_t = T_t / dt, rounded to whole steps."""
+        return max(1, round(self.disconnection_limit_s / self.step_s))
+
+    @cached_property
+    def episode_limit_steps(self) -> int:
+        return max(1, math.ceil(self.episode_limit_s / self.step_s))
+
+
+class Channel(_Strict):
+    path_loss_exponent: Positive
+    noise_w: Positive
+    sinr_threshold_db: Finite
+    level_edges_db: list[Finite] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _edges(self) -> Channel:
+        edges = self.level_edges_db
+        if any(b <= a for a, b in zip(edges, edges[1:], strict=False)):
+            raise ValueError("level_edges_db must be strictly increasing")
+        if not math.isclose(edges[0], self.sinr_threshold_db):
+            raise ValueError("level_edges_db[0] must equal sinr_threshold_db (level 0 = below T_s)")
+        return self
+
+    @property
+    def level_count(self) -> int:
+        return len(self.level_edges_db) + 1
+
+
+class Jammer(_Strict):
+    """The jammer as configured; ``power_w`` is its nominal (label) power."""
+
+    enabled: bool = True
+    x: Finite
+    y: Finite
+    power_w: NonNegative
+    height_m: NonNegative
+    efficiency_db: Annotated[float, Field(le=0, allow_inf_nan=False)]
+
+
+class Rewards(_Strict):
+    disconnected: Finite
+    marginal: Finite
+    collision: Finite
+    discomfort_distance_m: NonNegative
+    arrival: Finite
+    step: Finite
+    connectivity_check_every_steps: int | None = Field(default=None, ge=1)
+
+
+class Missions(_Strict):
+    uav_count: int = Field(ge=1, le=64)
+    mode: Literal["uniform"] = "uniform"
+    margin_m: NonNegative
+    min_trip_m: NonNegative
+    min_separation_m: NonNegative
+
+
+class Policy(_Strict):
+    gamma: Annotated[float, Field(gt=0, le=1)]
+    observed_uavs: int = Field(ge=0, le=16)
+    nearby_gbs: int = Field(ge=1)
+    value_scale: Positive
+    velocity_filter: Annotated[float, Field(ge=0, le=1)]
+
+
+class Training(_Strict):
+    jammer_change_every_episodes: int = Field(ge=1)
+    jammer_power_range_w: tuple[NonNegative, NonNegative]
+    jammer_absent_probability: Annotated[float, Field(ge=0, le=1)]
+
+
+class Scenario(_Strict):
+    name: str
+    area: Area
+    gbs: Gbs
+    uav: Uav
+    timing: Timing
+    channel: Channel
+    jammer: Jammer
+    rewards: Rewards
+    missions: Missions
+    policy: Policy
+    training: Training
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Scenario:
+        for x, y in self.gbs.positions:
+            if not self.area.contains(x, y):
+                raise ValueError(f"gbs.positions: ({x}, {y}) lies outside the area")
+        if not self.area.contains(self.jammer.x, self.jammer.y):
+            raise ValueError("jammer: position lies outside the area")
+        if self.policy.nearby_gbs > len(self.gbs.positions):
+            raise ValueError("policy.nearby_gbs exceeds the number of GBSs")
+        if self.uav.altitude_m == self.gbs.height_m:
+            raise ValueError("uav.altitude_m must differ from gbs.height_m (Eq. 3 divides by it)")
+        return self
+
+    @property
+    def connectivity_check_steps(self) -> int:
+        return self.rewards.connectivity_check_every_steps or self.timing.disconnection_limit_steps
+
+    def with_jammer(self, x: float, y: float, power_w: float) -> Scenario:
+        """The same scenario with the jammer moved (height and efficiency kept)."""
+        data = self.model_dump()
+        data["jammer"].update(enabled=True, x=x, y=y, power_w=power_w)
+        return Scenario.model_validate(data)
+
+    def without_jammer(self) -> Scenario:
+        data = self.model_dump()
+        data["jammer"]["enabled"] = False
+        return Scenario.model_validate(data)
+
+
+def resolve_scenario_path(name_or_path: str | Path | None) -> Path:
+    """A bare name looks in ``scenarios/``; anything with a suffix or separator is a path."""
+    if name_or_path is None:
+        name_or_path = DEFAULT_SCENARIO
+    candidate = Path(name_or_path)
+    if candidate.suffix == "" and len(candidate.parts) == 1:
+        candidate = SCENARIO_DIR / f"{candidate.name}.toml"
+    if not candidate.is_file():
+        known = ", ".join(sorted(p.stem for p in SCENARIO_DIR.glob("*.toml")))
+        raise ScenarioError(f"scenario {name_or_path!s}: no such file (known names: {known})")
+    return candidate
+
+
+def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
+    """Load and validate a scenario; raise ScenarioError with a one-line message on any problem."""
+    path = resolve_scenario_path(name_or_path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"{path}: not valid TOML: {exc}") from None
+    data.setdefault("name", path.stem)
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        field = ".".join(str(part) for part in first["loc"]) or "(top level)"
+        problems = exc.error_count()
+        more = f" (and {problems - 1} more)" if problems > 1 else ""
+        raise ScenarioError(f"{path}: field {field}: {first['msg']}{more}") from None

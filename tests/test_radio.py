@@ -1,0 +1,143 @@
+"""Eq. (1)-(5) against hand computation and physical properties."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from shared.radio import JammerParams, RadioModel
+from tests.conftest import variant
+
+coordinate = st.floats(-50, 50, allow_nan=False)
+
+
+def reference_sinr_db(scenario, x, y, jammer=None):
+    """Eq. (1)-(5) written out term by term, one GBS at a time (paper's readings)."""
+    gbs, channel = scenario.gbs, scenario.channel
+    hv, hb, alpha = scenario.uav.altitude_m, gbs.height_m, channel.path_loss_exponent
+    powers = []
+    for bx, by in gbs.positions:
+        d = math.hypot(x - bx, y - by)
+        angle = math.degrees(math.atan2(hb - hv, d))
+        g_b = 10 ** (-min(1.2 * ((angle - gbs.tilt_deg) / gbs.beamwidth_3db_deg) ** 2,
+                          gbs.max_attenuation_db / 10))
+        g_v = (hv - hb) / math.sqrt(d**2 + (hv - hb) ** 2)
+        loss = (d**2 + (hb - hv) ** 2) ** (alpha / 2)
+        powers.append(gbs.power_w * g_b * g_v / loss)
+    interference = 0.0
+    if jammer is not None:
+        jx, jy, jp, jh = jammer
+        dj = math.hypot(x - jx, y - jy)
+        slant = math.sqrt(dj**2 + (jh - hv) ** 2)
+        efficiency = 10 ** (scenario.jammer.efficiency_db / 10)
+        interference = jp * efficiency * slant ** (-alpha) * (hv - jh) / slant
+    k = int(np.argmax(powers))
+    sinr = powers[k] / (channel.noise_w + interference + sum(powers) - powers[k])
+    return 10 * math.log10(sinr), k
+
+
+def test_single_gbs_directly_below_by_hand(scenario):
+    # One GBS at the origin, the UAV right above it: elevation 90 deg, so the antenna is
+    # 100 deg off boresight -> attenuation capped at G_m = 20 dB; G_V = 1; L = 18^2.5.
+    one = variant(scenario, gbs={"positions": [[0.0, 0.0]]}, policy={"nearby_gbs": 1})
+    received = RadioModel(one).gbs_received_power(np.array([[0.0, 0.0]]))[0, 0]
+    assert math.isclose(received, 0.01 / 18**2.5, rel_tol=1e-12)
+    reading = RadioModel(one).evaluate(np.array([0.0, 0.0]))
+    assert math.isclose(float(reading.sinr), (0.01 / 18**2.5) / 1e-6, rel_tol=1e-12)
+
+
+def test_jammer_term_by_hand(scenario):
+    # Jammer right below the UAV: I_J = P_J * eff * (H_V - H_J)^-alpha (sin = 1).
+    radio = RadioModel(scenario)
+    jam = JammerParams(10.0, 20.0, 1.0, 30.0)
+    got = radio.jammer_interference(np.array([10.0, 20.0]), jam)
+    eff = 10 ** (scenario.jammer.efficiency_db / 10)
+    assert math.isclose(float(got), eff * 20.0**-2.5, rel_tol=1e-12)
+
+
+def test_matches_term_by_term_reference(scenario):
+    radio = RadioModel(scenario)
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-50, 50, size=(40, 2))
+    for jammer in (None, JammerParams(0.0, 0.0, 1.0, 30.0), JammerParams(25, -10, 0.5, 1.5)):
+        reading = radio.evaluate(points, jammer)
+        for (x, y), db, serving in zip(points, reading.sinr_db, reading.serving_gbs, strict=True):
+            want_db, want_k = reference_sinr_db(scenario, x, y, jammer)
+            assert math.isclose(db, want_db, rel_tol=1e-9, abs_tol=1e-9)
+            assert serving == want_k
+
+
+def test_levels_follow_edges(scenario):
+    radio = RadioModel(scenario)
+    edges = scenario.channel.level_edges_db
+    values = np.array([edges[0] - 1e-9, edges[0], edges[1] - 1e-9, edges[1], 30.0, -30.0])
+    assert radio.level_of(values).tolist() == [0, 1, 1, 2, 2, 0]
+
+
+def test_jammer_opens_a_local_hole_not_a_blank_area(scenario):
+    radio = RadioModel(scenario)
+    _, _, clear = radio.grid(scenario, 101, None)
+    _, _, jammed = radio.grid(scenario, 101, radio.default_jammer)
+    clear_share, jammed_share = (clear.level > 0).mean(), (jammed.level > 0).mean()
+    assert 0.7 < clear_share < 0.95
+    assert 0.5 < jammed_share < clear_share - 0.03
+    # The hole is local: far corners keep their coverage.
+    corner = np.array([[-37.5, 33.0], [37.5, -33.0]])
+    assert (radio.evaluate(corner, radio.default_jammer).level > 0).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(x=coordinate, y=coordinate, jx=coordinate, jy=coordinate,
+       p1=st.floats(0, 2), p2=st.floats(0, 2))
+def test_more_jammer_power_never_raises_sinr(scenario, x, y, jx, jy, p1, p2):
+    radio = RadioModel(scenario)
+    low, high = sorted((p1, p2))
+    point = np.array([x, y])
+    weaker = radio.evaluate(point, JammerParams(jx, jy, low, 30.0)).sinr
+    stronger = radio.evaluate(point, JammerParams(jx, jy, high, 30.0)).sinr
+    assert stronger <= weaker * (1 + 1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(x=coordinate, y=coordinate, angle=st.floats(0, 2 * math.pi),
+       near=st.floats(0, 40), extra=st.floats(0, 40))
+def test_moving_the_jammer_away_never_lowers_sinr(scenario, x, y, angle, near, extra):
+    radio = RadioModel(scenario)
+    point = np.array([x, y])
+    direction = np.array([math.cos(angle), math.sin(angle)])
+    close_xy = point + near * direction
+    far_xy = point + (near + extra) * direction
+    close = radio.evaluate(point, JammerParams(*close_xy, 1.0, 30.0)).sinr
+    far = radio.evaluate(point, JammerParams(*far_xy, 1.0, 30.0)).sinr
+    assert far >= close * (1 - 1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(x=coordinate, y=coordinate, jy=coordinate)
+def test_symmetric_layout_gives_symmetric_map(scenario, x, y, jy):
+    # The 4 x 3 grid is symmetric under x -> -x and y -> -y; a jammer on the axis keeps it.
+    radio = RadioModel(scenario)
+    points = np.array([[x, y], [-x, y]])
+    no_jammer = radio.evaluate(points).sinr_db
+    assert math.isclose(no_jammer[0], no_jammer[1], rel_tol=1e-9, abs_tol=1e-9)
+    mirrored_y = radio.evaluate(np.array([[x, y], [x, -y]])).sinr_db
+    assert math.isclose(mirrored_y[0], mirrored_y[1], rel_tol=1e-9, abs_tol=1e-9)
+    jammed = radio.evaluate(points, JammerParams(0.0, jy, 1.0, 30.0)).sinr_db
+    assert math.isclose(jammed[0], jammed[1], rel_tol=1e-9, abs_tol=1e-9)
+
+
+def test_batch_shapes_and_per_point_jammers(scenario):
+    radio = RadioModel(scenario)
+    points = np.zeros((3, 4, 2))
+    points[..., 0] = np.arange(4) * 5.0
+    per_env = JammerParams(np.array([[0.0], [20.0], [0.0]]), 0.0,
+                           np.array([[1.0], [1.0], [0.0]]), 30.0)
+    reading = radio.evaluate(points, per_env)
+    assert reading.sinr_db.shape == (3, 4)
+    np.testing.assert_allclose(reading.sinr_db[2], radio.evaluate(points[2]).sinr_db)
+    np.testing.assert_allclose(
+        reading.sinr_db[1], radio.evaluate(points[1], JammerParams(20.0, 0.0, 1.0, 30.0)).sinr_db
+    )

@@ -1,0 +1,209 @@
+"""The vectorized world: E independent environments x J UAVs stepped together with numpy.
+
+It owns the truth (positions, the jammer, the SINR each UAV measures) and knows no policy: it
+takes commanded speeds and headings, enforces the kinematic limits, and books per-UAV outcomes
+that are exclusive and final. Training, evaluation and the world process all run this engine.
+A UAV whose mission has ended leaves the airspace (landed or lost): it no longer moves, is no
+longer measured, and cannot be collided with.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from shared.kinematics import ActionSet, closest_approach, velocity_of
+from shared.outcomes import Outcome
+from shared.radio import JammerParams, RadioModel
+from shared.rewards import RewardModel
+from shared.scenario import Scenario
+
+_CANDIDATES_PER_DRAW = 64
+_MAX_DRAWS = 500
+
+
+def episode_seed(master_seed: int, episode: int) -> int:
+    """The seed of episode ``episode`` of a run: independent of how episodes are batched."""
+    return int(np.random.SeedSequence([int(master_seed), int(episode)]).generate_state(1)[0])
+
+
+class StepResult(NamedTuple):
+    reward: np.ndarray  # (E, J); 0 for UAVs that were already finished
+    finished: np.ndarray  # (E, J) bool: the mission ended in this step
+    env_done: np.ndarray  # (E,) bool: every UAV of the environment has finished
+
+
+class MissionSampler:
+    """Starts and destinations of one episode, drawn from the episode's own seed."""
+
+    def __init__(self, scenario: Scenario):
+        area, missions = scenario.area, scenario.missions
+        self.low = np.array([area.x_min + missions.margin_m, area.y_min + missions.margin_m])
+        self.high = np.array([area.x_max - missions.margin_m, area.y_max - missions.margin_m])
+        if np.any(self.low >= self.high):
+            raise ValueError("missions.margin_m leaves no room inside the area")
+        self.min_trip = missions.min_trip_m
+        self.min_separation = max(missions.min_separation_m, 2 * scenario.uav.radius_m + 1e-6)
+
+    def sample(self, seed: int, num_uavs: int) -> tuple[np.ndarray, np.ndarray]:
+        rng = np.random.default_rng(seed)
+        starts: list[tuple[float, float]] = []
+        goals: list[tuple[float, float]] = []
+        separation = self.min_separation
+        for _ in range(_MAX_DRAWS):
+            draw = rng.uniform(self.low, self.high, size=(2, _CANDIDATES_PER_DRAW, 2))
+            long_enough = np.hypot(*(draw[1] - draw[0]).T) >= self.min_trip
+            for (sx, sy), (gx, gy) in zip(
+                draw[0][long_enough].tolist(), draw[1][long_enough].tolist(), strict=True
+            ):
+                if any(math.hypot(sx - x, sy - y) < separation for x, y in starts) or any(
+                    math.hypot(gx - x, gy - y) < separation for x, y in goals
+                ):
+                    continue
+                starts.append((sx, sy))
+                goals.append((gx, gy))
+                if len(starts) == num_uavs:
+                    return np.asarray(starts), np.asarray(goals)
+        raise ValueError(
+            f"could not place {num_uavs} missions in the area: lower missions.min_trip_m or "
+            "missions.min_separation_m"
+        )
+
+
+class VectorWorld:
+    """E environments x J UAVs. All state is public numpy arrays, indexed [env, uav]."""
+
+    def __init__(self, scenario: Scenario, num_envs: int, num_uavs: int | None = None):
+        if num_envs < 1:
+            raise ValueError("num_envs must be at least 1")
+        self.scenario = scenario
+        self.num_envs = num_envs
+        self.num_uavs = scenario.missions.uav_count if num_uavs is None else num_uavs
+        if self.num_uavs < 1:
+            raise ValueError("num_uavs must be at least 1")
+        self.radio = RadioModel(scenario)
+        self.actions = ActionSet(scenario)
+        self.rewards = RewardModel(scenario)
+        self.sampler = MissionSampler(scenario)
+        self.dt = scenario.timing.step_s
+        self.disconnection_limit = scenario.timing.disconnection_limit_steps
+        self.step_limit = scenario.timing.episode_limit_steps
+        self._other = ~np.eye(self.num_uavs, dtype=bool)
+        self.radius = np.full((num_envs, self.num_uavs), scenario.uav.radius_m)
+        self.max_speed = np.full((num_envs, self.num_uavs), scenario.uav.max_speed_mps)
+        e, j = num_envs, self.num_uavs
+        self.position = np.zeros((e, j, 2))
+        self.velocity = np.zeros((e, j, 2))
+        self.heading = np.zeros((e, j))
+        self.start = np.zeros((e, j, 2))
+        self.destination = np.zeros((e, j, 2))
+        self.status = np.full((e, j), int(Outcome.ACTIVE), dtype=np.int8)
+        self.below_steps = np.zeros((e, j), dtype=np.int64)
+        self.sinr_db = np.zeros((e, j))
+        self.level = np.zeros((e, j), dtype=np.int8)
+        self.serving_gbs = np.zeros((e, j), dtype=np.int64)
+        self.steps = np.zeros(e, dtype=np.int64)
+        default = self.radio.default_jammer
+        self.jammer_x = np.full(e, default.x if default else 0.0)
+        self.jammer_y = np.full(e, default.y if default else 0.0)
+        self.jammer_power = np.full(e, default.power_w if default else 0.0)
+        self.jammer_height = np.full(e, scenario.jammer.height_m)
+
+    # -- control ---------------------------------------------------------------------------
+    def set_jammer(self, env_ids, jammer: JammerParams | None) -> None:
+        """Move, re-power or (None) switch off the jammer of the given environments."""
+        if jammer is None:
+            self.jammer_power[env_ids] = 0.0
+            return
+        self.jammer_x[env_ids] = jammer.x
+        self.jammer_y[env_ids] = jammer.y
+        self.jammer_power[env_ids] = jammer.power_w
+        self.jammer_height[env_ids] = jammer.height_m
+
+    def jammer(self, env_ids=slice(None)) -> JammerParams:
+        """The jammers of the given environments as arrays shaped (n, 1) for (n, J) points."""
+        return JammerParams(
+            self.jammer_x[env_ids, None],
+            self.jammer_y[env_ids, None],
+            self.jammer_power[env_ids, None],
+            self.jammer_height[env_ids, None],
+        )
+
+    def reset(self, env_ids, seeds) -> None:
+        """Start new episodes in ``env_ids``; episode ``k`` uses ``seeds[k]`` alone."""
+        env_ids = np.atleast_1d(np.asarray(env_ids, dtype=np.int64))
+        seeds = np.atleast_1d(np.asarray(seeds))
+        for env, seed in zip(env_ids, seeds, strict=True):
+            starts, goals = self.sampler.sample(int(seed), self.num_uavs)
+            self.start[env] = starts
+            self.position[env] = starts
+            self.destination[env] = goals
+            to_goal = goals - starts
+            self.heading[env] = np.arctan2(to_goal[:, 1], to_goal[:, 0])
+        self.velocity[env_ids] = 0.0
+        self.status[env_ids] = int(Outcome.ACTIVE)
+        self.steps[env_ids] = 0
+        reading = self.radio.evaluate(self.position[env_ids], self.jammer(env_ids))
+        self.sinr_db[env_ids] = reading.sinr_db
+        self.level[env_ids] = reading.level
+        self.serving_gbs[env_ids] = reading.serving_gbs
+        self.below_steps[env_ids] = (reading.level == 0).astype(np.int64)
+
+    # -- dynamics --------------------------------------------------------------------------
+    @property
+    def active(self) -> np.ndarray:
+        return self.status == int(Outcome.ACTIVE)
+
+    def step(self, speed: np.ndarray, heading: np.ndarray) -> StepResult:
+        """Apply commanded speeds and headings (E, J); clipped to the kinematic limits."""
+        active = self.active
+        speed, heading = self.actions.clip(speed, heading, self.heading)
+        speed = np.where(active, speed, 0.0)
+        heading = np.where(active, heading, self.heading)
+        velocity = velocity_of(speed, heading)
+        dt = self.dt
+
+        pair_distance = closest_approach(
+            self.position[:, None, :, :] - self.position[:, :, None, :],
+            velocity[:, None, :, :] - velocity[:, :, None, :],
+            dt,
+        )
+        pair_gap = pair_distance - self.radius[:, :, None] - self.radius[:, None, :]
+        both_active = active[:, :, None] & active[:, None, :]
+        gap = np.where(both_active & self._other, pair_gap, np.inf).min(axis=2)
+        collided = active & (gap <= 0)
+
+        goal_distance = closest_approach(self.position - self.destination, velocity, dt)
+        arrived = active & ~collided & (goal_distance <= self.scenario.uav.arrival_tolerance_m)
+
+        new_position = self.position + velocity * dt
+        new_position = np.where(arrived[..., None], self.destination, new_position)
+        reading = self.radio.evaluate(new_position, self.jammer())
+        below = np.where(reading.level == 0, self.below_steps + 1, 0)
+
+        check_now = self.rewards.is_check_step(self.steps)[:, None]
+        reward = np.where(active, self.rewards.total(reading.level, check_now, gap, arrived), 0.0)
+
+        self.steps += 1
+        disconnected = active & ~collided & ~arrived & (below > self.disconnection_limit)
+        timed_out = (
+            active & ~collided & ~arrived & ~disconnected & (self.steps >= self.step_limit)[:, None]
+        )
+        status = self.status.copy()
+        status[collided] = Outcome.COLLISION
+        status[arrived] = Outcome.SUCCESS
+        status[disconnected] = Outcome.DISCONNECTION
+        status[timed_out] = Outcome.TIMEOUT
+
+        self.position = np.where(active[..., None], new_position, self.position)
+        self.velocity = np.where((status == Outcome.ACTIVE)[..., None], velocity, 0.0)
+        self.heading = heading
+        self.sinr_db = np.where(active, reading.sinr_db, self.sinr_db)
+        self.level = np.where(active, reading.level, self.level).astype(np.int8)
+        self.serving_gbs = np.where(active, reading.serving_gbs, self.serving_gbs)
+        self.below_steps = np.where(active, below, self.below_steps)
+        finished = active & (status != Outcome.ACTIVE)
+        self.status = status
+        return StepResult(reward, finished, ~self.active.any(axis=1))
