@@ -146,7 +146,7 @@ def cmd_sinr(args: argparse.Namespace) -> int:
 
 
 def cmd_map(args: argparse.Namespace) -> int:
-    from jamnav.plots import save_coverage_map
+    from shared.plots import save_coverage_map
 
     scenario = scenario_with_jammer(args)
     out = Path(args.out)
@@ -156,6 +156,48 @@ def cmd_map(args: argparse.Namespace) -> int:
         raise UsageError("--resolution must be between 20 and 2000")
     share = save_coverage_map(scenario, RadioModel.jammer_of(scenario), out, args.resolution)
     print(f"wrote {out} (covered {share:.1%} of the area)", file=sys.stderr)
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from cloud_service.value_training import TrainConfig, train
+    from jamnav.progress import ProgressBar
+
+    scenario = load_scenario(args.scenario)
+    for name in ("episodes", "envs"):
+        if getattr(args, name) < 1:
+            raise UsageError(f"--{name} must be at least 1")
+    if args.uavs is not None and not 1 <= args.uavs <= 64:
+        raise UsageError("--uavs must be between 1 and 64")
+    if args.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise UsageError(f"--device {args.device}: CUDA is not available on this machine")
+    config = TrainConfig(episodes=args.episodes, envs=args.envs, uavs=args.uavs,
+                         seed=args.seed, device=args.device)
+    out = Path(args.out)
+    bar = ProgressBar("train", args.episodes)
+
+    def progress(info: dict) -> None:
+        phase = info["phase"]
+        if phase == "td":
+            bar.update(info["episodes_done"], f"eps {info['epsilon']:.2f} "
+                       f"success(last 200) {info['recent_success']:.0%}")
+        else:
+            print(f"train: {phase} {info.get('episodes', '')}".rstrip(), file=sys.stderr)
+
+    command = "jamnav " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["train"] else "jamnav train"
+    card = train(scenario, config, out, resume=args.resume, progress=progress, command=command)
+    validation = card["validation"]
+    print(json.dumps({
+        "out": str(out),
+        "episodes": card["episodes"],
+        "wall_seconds": card["wall_seconds"],
+        "decisions_per_second": card["decisions_per_second"],
+        "validation": {k: validation[k] for k in ("success_rate", "disconnection_rate",
+                                                   "collision_rate", "timeout_rate")},
+    }, indent=2))
     return 0
 
 
@@ -189,6 +231,17 @@ def build_parser() -> argparse.ArgumentParser:
     coverage.add_argument("--out", required=True, metavar="FILE.png")
     coverage.add_argument("--resolution", type=int, default=301, help="grid points per side")
     coverage.set_defaults(handler=cmd_map)
+
+    training = commands.add_parser("train", help="train the value network (Algorithm 1)")
+    _add_scenario(training)
+    training.add_argument("--episodes", type=int, default=20000)
+    training.add_argument("--envs", type=int, default=64, help="environments flown at once")
+    training.add_argument("--uavs", type=int, default=None, help="UAVs per episode")
+    training.add_argument("--seed", type=int, default=0)
+    training.add_argument("--out", default="runs/train", metavar="DIR")
+    training.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint")
+    training.add_argument("--device", default="cpu", help="cpu (default) or cuda")
+    training.set_defaults(handler=cmd_train)
     return parser
 
 

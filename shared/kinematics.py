@@ -73,9 +73,11 @@ def closest_approach(
 
     ``relative_position`` and ``relative_velocity`` have shape (..., 2); returns shape (...).
     """
-    speed_sq = np.sum(relative_velocity * relative_velocity, axis=-1)
-    toward = -np.sum(relative_position * relative_velocity, axis=-1)
-    time = np.clip(np.divide(toward, speed_sq, out=np.zeros_like(toward), where=speed_sq > 0),
-                   0.0, duration)
-    closest = relative_position + relative_velocity * time[..., None]
-    return np.sqrt(np.sum(closest * closest, axis=-1))
+    px, py = relative_position[..., 0], relative_position[..., 1]
+    vx, vy = relative_velocity[..., 0], relative_velocity[..., 1]
+    speed_sq = vx * vx + vy * vy
+    toward = -(px * vx + py * vy)
+    time = np.clip(
+        np.divide(toward, speed_sq, out=np.zeros_like(toward), where=speed_sq > 0), 0.0, duration
+    )
+    return np.hypot(px + vx * time, py + vy * time)

@@ -140,7 +140,7 @@ class Policy(_Strict):
     observed_uavs: int = Field(ge=0, le=16)
     nearby_gbs: int = Field(ge=1)
     value_scale: Positive
-    velocity_filter: Annotated[float, Field(ge=0, le=1)]
+    orca_time_horizon_s: Positive
 
 
 class Training(_Strict):

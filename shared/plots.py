@@ -65,3 +65,28 @@ def save_coverage_map(
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return share
+
+
+def plot_reward_curve(log_csv: Path, out: Path, window: int = 200) -> None:
+    """Accumulated reward per episode against the straight-line bound (the paper's Fig. 2a),
+    both as moving averages over ``window`` episodes."""
+    data = np.genfromtxt(log_csv, delimiter=",", names=True)
+    data = np.atleast_1d(data)
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    if data.size:
+        width = max(1, min(window, data.size // 5 or 1))
+        kernel = np.ones(width) / width
+        episodes = data["episode"][width - 1 :]
+        ax.plot(episodes, np.convolve(data["mean_return"], kernel, "valid"),
+                label="value network (training, with exploration)")
+        ax.plot(episodes, np.convolve(data["straight_bound"], kernel, "valid"), "s-",
+                markevery=max(1, episodes.size // 12), color="tab:green",
+                label="straight line, ignoring $R_s$ and $R_c$ (upper bound)")
+    ax.set_xlabel("episode")
+    ax.set_ylabel("accumulated reward per UAV")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,172 @@
+"""In-process rollouts: the vectorized world flown by a controller.
+
+A controller turns the world's state into commanded speeds and headings for every UAV. The
+lookahead controller sees only what each UAV observes (``Observation``) and a radio map; the
+baselines (ORCA, straight flight) need no map. Training, validation and ``jamnav eval`` all
+fly episodes through ``run_episodes`` or the same controllers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple, Protocol
+
+import numpy as np
+
+from shared.features import Observation
+from shared.orca import orca_velocities, preferred_velocity_toward
+from shared.outcomes import Outcome
+from shared.paper import JammerSetting
+from shared.policy import LookaheadPolicy, RadioMap, TrueMap
+from shared.radio import JammerParams
+from shared.scenario import Scenario
+from world_sim.core import VectorWorld, episode_seed
+
+MapFor = Callable[[VectorWorld, np.ndarray], RadioMap]
+
+
+def fleet_observation(world: VectorWorld) -> Observation:
+    """What every UAV of the world observes, one row per UAV (env-major)."""
+    return Observation.of_fleet(
+        world.position, world.velocity, world.heading, world.destination, world.radius,
+        world.max_speed, world.level, world.active, world.steps,
+    )
+
+
+def perfect_map(world: VectorWorld, rows: np.ndarray) -> RadioMap:
+    """The true current map of each row's environment."""
+    env = rows // world.num_uavs
+    return TrueMap(world.radio, world.jammer(env))
+
+
+def outdated_map(world: VectorWorld, rows: np.ndarray) -> RadioMap:
+    """The map without any jammer."""
+    return TrueMap(world.radio, None)
+
+
+class Controller(Protocol):
+    def act(self, world: VectorWorld) -> tuple[np.ndarray, np.ndarray]:
+        """Commanded speed and heading (E, J) for the world's current state."""
+
+
+class LookaheadController:
+    def __init__(
+        self,
+        policy: LookaheadPolicy,
+        map_for: MapFor,
+        epsilon: float = 0.0,
+        rng: np.random.Generator | None = None,
+    ):
+        self.policy = policy
+        self.map_for = map_for
+        self.epsilon = epsilon
+        self.rng = rng
+
+    def act(self, world: VectorWorld) -> tuple[np.ndarray, np.ndarray]:
+        rows = np.flatnonzero(world.active.ravel())
+        observation = fleet_observation(world).select(rows)
+        decision = self.policy.decide(
+            observation, self.map_for(world, rows), self.epsilon, self.rng
+        )
+        speed = np.zeros(world.num_envs * world.num_uavs)
+        heading = world.heading.ravel().copy()
+        speed[rows] = decision.speed
+        heading[rows] = decision.heading
+        shape = world.active.shape
+        return speed.reshape(shape), heading.reshape(shape)
+
+
+def _speed_heading(world: VectorWorld, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    speed = np.hypot(velocity[..., 0], velocity[..., 1])
+    heading = np.where(speed > 1e-9, np.arctan2(velocity[..., 1], velocity[..., 0]), world.heading)
+    return speed, heading
+
+
+class OrcaController:
+    """ORCA toward the destination: avoids other UAVs, blind to connectivity."""
+
+    def __init__(self, scenario: Scenario):
+        self.horizon = scenario.policy.orca_time_horizon_s
+
+    def act(self, world: VectorWorld) -> tuple[np.ndarray, np.ndarray]:
+        preferred = preferred_velocity_toward(
+            world.position, world.destination, world.max_speed, world.dt
+        )
+        velocity = orca_velocities(
+            world.position, world.velocity, world.radius, preferred, world.max_speed,
+            world.active, self.horizon, world.dt,
+        )
+        return _speed_heading(world, velocity)
+
+
+class StraightController:
+    """Straight to the destination at full speed: the paper's upper-bound reference."""
+
+    def act(self, world: VectorWorld) -> tuple[np.ndarray, np.ndarray]:
+        preferred = preferred_velocity_toward(
+            world.position, world.destination, world.max_speed, world.dt
+        )
+        return _speed_heading(world, preferred)
+
+
+class EpisodeResults(NamedTuple):
+    outcomes: np.ndarray  # (episodes, J) Outcome codes
+    returns: np.ndarray  # (episodes, J) accumulated reward per UAV
+    steps: np.ndarray  # (episodes,) steps until every UAV finished
+
+
+def run_episodes(
+    scenario: Scenario,
+    controller: Controller,
+    episodes: int,
+    seed: int,
+    jammer: JammerSetting | None,
+    num_uavs: int | None = None,
+    num_envs: int = 64,
+    on_step: Callable[[VectorWorld], None] | None = None,
+    on_episode: Callable[[int], None] | None = None,
+) -> EpisodeResults:
+    """Fly ``episodes`` episodes (episode k seeded by ``episode_seed(seed, k)``) under one
+    jammer setting, ``num_envs`` at a time. Results are independent of ``num_envs``."""
+    world = VectorWorld(scenario, min(num_envs, episodes), num_uavs)
+    params = None
+    if jammer is not None:
+        params = JammerParams(jammer.x, jammer.y, jammer.power_w, scenario.jammer.height_m)
+    world.set_jammer(slice(None), params)
+    outcomes = np.zeros((episodes, world.num_uavs), dtype=np.int8)
+    returns = np.zeros((episodes, world.num_uavs))
+    steps = np.zeros(episodes, dtype=np.int64)
+    slot_episode = np.arange(world.num_envs)
+    world.reset(slot_episode, [episode_seed(seed, k) for k in slot_episode])
+    running = np.ones(world.num_envs, dtype=bool)
+    next_episode = world.num_envs
+    while running.any():
+        speed, heading = controller.act(world)
+        result = world.step(speed, heading)
+        if on_step is not None:
+            on_step(world)
+        returns[slot_episode[running]] += result.reward[running]
+        for env in np.flatnonzero(result.env_done & running):
+            episode = slot_episode[env]
+            outcomes[episode] = world.status[env]
+            steps[episode] = world.steps[env]
+            if on_episode is not None:
+                on_episode(episode)
+            if next_episode < episodes:
+                slot_episode[env] = next_episode
+                world.reset([env], [episode_seed(seed, next_episode)])
+                next_episode += 1
+            else:
+                running[env] = False
+                # A finished slot idles with no active UAV until the others are done.
+    return EpisodeResults(outcomes, returns, steps)
+
+
+def outcome_rates(outcomes: np.ndarray) -> dict[str, float]:
+    """Share of UAV-episodes ending in each outcome."""
+    total = outcomes.size
+    return {
+        f"{outcome.label}_rate": float(np.count_nonzero(outcomes == outcome) / total)
+        for outcome in (Outcome.SUCCESS, Outcome.DISCONNECTION, Outcome.COLLISION,
+                        Outcome.TIMEOUT)
+    }

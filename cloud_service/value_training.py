@@ -1,0 +1,498 @@
+"""Offline value-network training, Algorithm 1 of the paper, top to bottom.
+
+1. ORCA initialization: fly ORCA episodes, turn each UAV's trajectory into state-value pairs
+   (discounted returns), fit the standardization layer and regress the network on them.
+2. TD learning: many environments fly the one-step lookahead policy with epsilon-greedy
+   exploration (epsilon 0.5 -> 0.1 linearly) on the true map of their current jammer; when a
+   UAV's mission ends its trajectory becomes TD targets V_t = R_t + gamma V'(s_{t+1}) from a
+   target network, pushed into the replay memory; after every finished episode the network
+   takes gradient steps on mini-batches of 200 (Adam, lr 1e-3, L2 1e-4).
+3. The jammer moves or changes power every few episodes (random position and power inside
+   the area; sometimes absent), as in the paper's training.
+Checkpoints make a run resumable; a fixed, seeded validation set scores the result.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import subprocess
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.numpy import load_file as load_arrays
+from safetensors.numpy import save_file as save_arrays
+
+from cloud_service.rollout import (
+    LookaheadController,
+    OrcaController,
+    fleet_observation,
+    outcome_rates,
+    perfect_map,
+    run_episodes,
+)
+from shared.features import joint_state_size, observation_state
+from shared.networks import ValueNetwork, from_bytes, save_network, to_bytes
+from shared.outcomes import Outcome
+from shared.paper import TABLE_I_JAMMERS
+from shared.policy import LookaheadPolicy
+from shared.radio import JammerParams
+from shared.scenario import Scenario
+from world_sim.core import VectorWorld, episode_seed
+
+VALIDATION_SEED = 20210614  # fixed: every model is scored on the same episodes
+TRAINING_JAMMER_STREAM = 7  # separates the jammer schedule's random stream from missions'
+
+
+@dataclass
+class TrainConfig:
+    episodes: int = 20000
+    envs: int = 64
+    uavs: int | None = None
+    seed: int = 0
+    device: str = "cpu"
+    threads: int = 1  # torch threads: on 2 cores one thread beats two fighting the world
+    batch_size: int = 200  # paper
+    learning_rate: float = 1e-3  # paper
+    weight_decay: float = 1e-4  # paper: L2 regularization
+    epsilon_start: float = 0.5  # paper
+    epsilon_end: float = 0.1  # paper
+    epsilon_decay_share: float = 0.5  # epsilon reaches its end value halfway through
+    memory_capacity: int | None = None  # None: paper's 30,000 for 2 UAVs, 100,000 for more
+    updates_per_episode: int = 2
+    target_sync_episodes: int = 50
+    orca_episodes: int = 1000
+    orca_epochs: int = 30
+    checkpoint_every_episodes: int = 2000
+    validation_episodes: int = 50  # per Table I jammer setting
+    extra: dict = field(default_factory=dict)
+
+    def capacity(self, uavs: int) -> int:
+        if self.memory_capacity is not None:
+            return self.memory_capacity
+        return 30_000 if uavs <= 2 else 100_000
+
+
+class ReplayMemory:
+    """Bounded state-value pairs D; the oldest pairs are overwritten first."""
+
+    def __init__(self, capacity: int, state_size: int):
+        self.states = np.zeros((capacity, state_size), dtype=np.float32)
+        self.values = np.zeros(capacity, dtype=np.float32)
+        self.size = 0
+        self.cursor = 0
+
+    def push(self, states: np.ndarray, values: np.ndarray) -> None:
+        capacity = self.values.shape[0]
+        for start in range(0, len(values), capacity):
+            chunk_states = states[start : start + capacity]
+            chunk_values = values[start : start + capacity]
+            index = (self.cursor + np.arange(len(chunk_values))) % capacity
+            self.states[index] = chunk_states
+            self.values[index] = chunk_values
+            self.cursor = int((self.cursor + len(chunk_values)) % capacity)
+            self.size = min(capacity, self.size + len(chunk_values))
+
+    def sample(self, rng: np.random.Generator, batch: int) -> tuple[np.ndarray, np.ndarray]:
+        index = rng.integers(0, self.size, batch)
+        return self.states[index], self.values[index]
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {"states": self.states[: self.size], "values": self.values[: self.size]}
+
+
+def training_jammer(scenario: Scenario, seed: int, period: int) -> JammerParams | None:
+    """The jammer of training period ``period``: random position and power, or absent."""
+    rng = np.random.default_rng([seed, TRAINING_JAMMER_STREAM, period])
+    spec = scenario.training
+    if rng.random() < spec.jammer_absent_probability:
+        return None
+    area = scenario.area
+    return JammerParams(
+        float(rng.uniform(area.x_min, area.x_max)),
+        float(rng.uniform(area.y_min, area.y_max)),
+        float(rng.uniform(*spec.jammer_power_range_w)),
+        scenario.jammer.height_m,
+    )
+
+
+def discounted_returns(rewards: np.ndarray, gamma: float) -> np.ndarray:
+    values = np.zeros_like(rewards)
+    running = 0.0
+    for t in range(len(rewards) - 1, -1, -1):
+        running = rewards[t] + gamma * running
+        values[t] = running
+    return values
+
+
+class TrajectoryRecorder:
+    """Per-UAV states and rewards of the running episodes, flushed when a mission ends."""
+
+    def __init__(self, envs: int, uavs: int, horizon: int, state_size: int):
+        self.states = np.zeros((envs, uavs, horizon + 1, state_size), dtype=np.float32)
+        self.rewards = np.zeros((envs, uavs, horizon), dtype=np.float32)
+        self.length = np.zeros((envs, uavs), dtype=np.int64)
+
+    def record(self, rows_state: np.ndarray, rows: np.ndarray, reward: np.ndarray) -> None:
+        """Store the state each active UAV acted from, and the reward it then received."""
+        uavs = self.length.shape[1]
+        env, uav = rows // uavs, rows % uavs
+        t = self.length[env, uav]
+        self.states[env, uav, t] = rows_state
+        self.rewards[env, uav, t] = reward[env, uav]
+        self.length[env, uav] = t + 1
+
+    def take(self, env: int, uav: int) -> tuple[np.ndarray, np.ndarray]:
+        length = self.length[env, uav]
+        self.length[env, uav] = 0
+        return self.states[env, uav, :length], self.rewards[env, uav, :length]
+
+
+def fit_value_net(
+    net: ValueNetwork,
+    states: np.ndarray,
+    values: np.ndarray,
+    epochs: int,
+    config: TrainConfig,
+    rng: np.random.Generator,
+) -> float:
+    """Line 1 of Algorithm 1: regress the network on state-value pairs; returns the last MSE."""
+    device = torch.device(config.device)
+    net.standardize.fit(torch.from_numpy(states).to(device))
+    optimizer = torch.optim.Adam(
+        net.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
+    )
+    x_all, y_all = torch.from_numpy(states).to(device), torch.from_numpy(values).to(device)
+    loss_value = math.nan
+    for _ in range(epochs):
+        order = torch.from_numpy(rng.permutation(len(values))).to(device)
+        for start in range(0, len(values), config.batch_size):
+            batch = order[start : start + config.batch_size]
+            loss = torch.nn.functional.mse_loss(net(x_all[batch]), y_all[batch])
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            loss_value = float(loss)
+    return loss_value
+
+
+@dataclass
+class EpisodeStats:
+    episode: int
+    outcomes: np.ndarray  # (J,)
+    mean_return: float
+    straight_bound: float
+
+
+def straight_line_bound(scenario: Scenario, start: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """Reward of flying straight at full speed, ignoring R_s and R_c (the paper's bound)."""
+    reach = scenario.uav.max_speed_mps * scenario.timing.step_s
+    distance = np.linalg.norm(goal - start, axis=-1) - scenario.uav.arrival_tolerance_m
+    steps = np.maximum(1, np.ceil(distance / reach))
+    return scenario.rewards.arrival + scenario.rewards.step * steps
+
+
+def fly(
+    scenario: Scenario,
+    world: VectorWorld,
+    controller,
+    seed: int,
+    first_episode: int,
+    episodes: int,
+    on_missions: Callable[[list[tuple[np.ndarray, np.ndarray]]], None],
+    on_episode: Callable[[EpisodeStats], None],
+) -> int:
+    """Fly episodes first_episode .. first_episode+episodes-1 under the training jammer
+    schedule; every ended mission's (states, rewards) goes to ``on_missions``. Returns the
+    number of decisions taken."""
+    observed = scenario.policy.observed_uavs
+    period = scenario.training.jammer_change_every_episodes
+    envs = world.num_envs
+    recorder = TrajectoryRecorder(envs, world.num_uavs, world.step_limit,
+                                  joint_state_size(scenario))
+    slot_episode = np.full(envs, -1)
+    returns = np.zeros((envs, world.num_uavs))
+    next_episode = first_episode
+    end = first_episode + episodes
+
+    def start(env: int) -> None:
+        nonlocal next_episode
+        slot_episode[env] = next_episode
+        world.set_jammer([env], training_jammer(scenario, seed, next_episode // period))
+        world.reset([env], [episode_seed(seed, next_episode)])
+        returns[env] = 0.0
+        next_episode += 1
+
+    for env in range(min(envs, episodes)):
+        start(env)
+    decisions = 0
+    while (slot_episode >= 0).any():
+        running = slot_episode >= 0
+        live = world.active & running[:, None]
+        rows = np.flatnonzero(live.ravel())
+        states = observation_state(fleet_observation(world).select(rows), observed)
+        speed, heading = controller.act(world)
+        result = world.step(speed, heading)
+        decisions += rows.size
+        recorder.record(states, rows, result.reward)
+        returns += result.reward
+        on_missions([recorder.take(e, u) for e, u in zip(*np.nonzero(result.finished),
+                                                          strict=True)])
+        for env in np.flatnonzero(result.env_done & running):
+            bound = straight_line_bound(scenario, world.start[env], world.destination[env])
+            on_episode(EpisodeStats(int(slot_episode[env]), world.status[env].copy(),
+                                    float(returns[env].mean()), float(bound.mean())))
+            if next_episode < end:
+                start(env)
+            else:
+                slot_episode[env] = -1
+    return decisions
+
+
+def td_targets(
+    target_net: ValueNetwork,
+    missions: list[tuple[np.ndarray, np.ndarray]],
+    gamma: float,
+    device: torch.device,
+) -> tuple[np.ndarray, np.ndarray]:
+    """updateValue of Algorithm 1: V_t = R_t + gamma V'(s_{t+1}); the last step is terminal."""
+    states = np.concatenate([s for s, _ in missions])
+    rewards = np.concatenate([r for _, r in missions]).astype(np.float64)
+    with torch.inference_mode():
+        values = target_net(torch.from_numpy(states).to(device)).cpu().numpy().astype(np.float64)
+    next_values = np.zeros_like(rewards)
+    offset = 0
+    for mission_states, _ in missions:
+        length = len(mission_states)
+        next_values[offset : offset + length - 1] = values[offset + 1 : offset + length]
+        offset += length
+    return states, (rewards + gamma * next_values).astype(np.float32)
+
+
+def validate(
+    scenario: Scenario, net: ValueNetwork, episodes: int, uavs: int, device: str
+) -> dict[str, float]:
+    """Greedy lookahead on the true map, over the fixed validation episodes of each Table I
+    jammer setting: the share of UAV-episodes ending in each outcome."""
+    policy = LookaheadPolicy(scenario, net, device)
+    outcomes = [
+        run_episodes(scenario, LookaheadController(policy, perfect_map), episodes,
+                     VALIDATION_SEED, setting, uavs).outcomes
+        for setting in TABLE_I_JAMMERS
+    ]
+    rates = outcome_rates(np.concatenate(outcomes))
+    return {**rates, "episodes_per_setting": episodes,
+            "settings": [setting.label for setting in TABLE_I_JAMMERS]}
+
+
+def git_commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                              timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+LOG_FIELDS = ["episode", "wall_seconds", "epsilon", "mean_return", "straight_bound",
+              "success", "disconnection", "collision", "timeout"]
+
+
+class Checkpoint:
+    """Everything a resumed run needs, in ``<out>/checkpoint/``; written atomically enough
+    (progress.json last) that a crash mid-write leaves the previous checkpoint usable."""
+
+    def __init__(self, out: Path):
+        self.dir = out / "checkpoint"
+
+    def exists(self) -> bool:
+        return (self.dir / "progress.json").is_file()
+
+    def save(self, net, target, optimizer, memory: ReplayMemory, progress: dict) -> None:
+        self.dir.mkdir(parents=True, exist_ok=True)
+        (self.dir / "value.safetensors").write_bytes(to_bytes(net))
+        (self.dir / "target.safetensors").write_bytes(to_bytes(target))
+        torch.save(optimizer.state_dict(), self.dir / "optimizer.pt")
+        save_arrays(memory.arrays(), str(self.dir / "memory.safetensors"))
+        tmp = self.dir / "progress.json.tmp"
+        tmp.write_text(json.dumps(progress, indent=2))
+        tmp.replace(self.dir / "progress.json")
+
+    def load(self, net, target, optimizer, memory: ReplayMemory) -> dict:
+        for module, name in ((net, "value"), (target, "target")):
+            restored = from_bytes((self.dir / f"{name}.safetensors").read_bytes())
+            module.load_state_dict(restored.state_dict())
+        optimizer.load_state_dict(torch.load(self.dir / "optimizer.pt", weights_only=True))
+        arrays = load_arrays(str(self.dir / "memory.safetensors"))
+        memory.push(arrays["states"], arrays["values"])
+        return json.loads((self.dir / "progress.json").read_text())
+
+
+def train(
+    scenario: Scenario,
+    config: TrainConfig,
+    out: Path,
+    resume: bool = False,
+    progress: Callable[[dict], None] | None = None,
+    command: str = "",
+) -> dict:
+    """Run Algorithm 1 and write value_net.safetensors, its card, train_log.csv and the
+    reward curve into ``out``. Returns the card."""
+    out.mkdir(parents=True, exist_ok=True)
+    uavs = config.uavs or scenario.missions.uav_count
+    device = torch.device(config.device)
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng([config.seed, 1])
+    size = joint_state_size(scenario)
+    net = ValueNetwork(size, scenario.policy.value_scale).to(device)
+    target = ValueNetwork(size, scenario.policy.value_scale).to(device)
+    memory = ReplayMemory(config.capacity(uavs), size)
+    checkpoint = Checkpoint(out)
+    log_path = out / "train_log.csv"
+    report = progress or (lambda info: None)
+
+    if resume and checkpoint.exists():
+        optimizer = torch.optim.Adam(net.parameters(), lr=config.learning_rate,
+                                     weight_decay=config.weight_decay)
+        state = checkpoint.load(net, target, optimizer, memory)
+        done, next_episode = state["episodes_done"], state["next_episode"]
+        wall_before, decisions, td_seconds = (state["wall_seconds"], state["decisions"],
+                                              state["td_seconds"])
+        orca_info = state["orca"]
+        rng = np.random.default_rng([config.seed, 1, done])
+        report({"phase": "resume", "episodes_done": done})
+    else:
+        started = time.perf_counter()
+        report({"phase": "orca", "episodes": config.orca_episodes})
+        states, values = orca_pairs(scenario, config, uavs)
+        mse = fit_value_net(net, states, values, config.orca_epochs, config, rng)
+        memory.push(states, values)
+        orca_info = {"episodes": config.orca_episodes, "pairs": int(len(values)),
+                     "epochs": config.orca_epochs, "final_mse": mse,
+                     "seconds": time.perf_counter() - started}
+        optimizer = torch.optim.Adam(net.parameters(), lr=config.learning_rate,
+                                     weight_decay=config.weight_decay)
+        target.load_state_dict(net.state_dict())
+        done, next_episode, wall_before, decisions, td_seconds = 0, 0, orca_info["seconds"], 0, 0.0
+        with log_path.open("w", newline="") as handle:
+            csv.writer(handle).writerow(LOG_FIELDS)
+
+    policy = LookaheadPolicy(scenario, net, config.device)
+    controller = LookaheadController(policy, perfect_map, rng=rng)
+    world = VectorWorld(scenario, config.envs, uavs)
+    gamma = scenario.policy.gamma
+    decay_episodes = max(1, int(config.episodes * config.epsilon_decay_share))
+    recent: list[np.ndarray] = []
+    session_start = time.perf_counter()
+    log_handle = log_path.open("a", newline="")
+    log = csv.writer(log_handle)
+
+    def epsilon_at(episode: int) -> float:
+        share = min(1.0, episode / decay_episodes)
+        return config.epsilon_start + share * (config.epsilon_end - config.epsilon_start)
+
+    def on_missions(missions: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        missions = [m for m in missions if len(m[0])]
+        if missions:
+            memory.push(*td_targets(target, missions, gamma, device))
+
+    def on_episode(stats: EpisodeStats) -> None:
+        nonlocal done
+        done += 1
+        controller.epsilon = epsilon_at(done)
+        net.train()
+        for _ in range(config.updates_per_episode if memory.size >= config.batch_size else 0):
+            batch_states, batch_values = memory.sample(rng, config.batch_size)
+            prediction = net(torch.from_numpy(batch_states).to(device))
+            loss = torch.nn.functional.mse_loss(prediction,
+                                                torch.from_numpy(batch_values).to(device))
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        net.eval()
+        if done % config.target_sync_episodes == 0:
+            target.load_state_dict(net.state_dict())
+        counts = [int(np.count_nonzero(stats.outcomes == o)) for o in
+                  (Outcome.SUCCESS, Outcome.DISCONNECTION, Outcome.COLLISION, Outcome.TIMEOUT)]
+        wall = wall_before + time.perf_counter() - session_start
+        log.writerow([done, round(wall, 3), round(controller.epsilon, 4),
+                      round(stats.mean_return, 5), round(stats.straight_bound, 5), *counts])
+        recent.append(stats.outcomes)
+        del recent[:-200]
+        report({"phase": "td", "episodes_done": done, "episodes": config.episodes,
+                "epsilon": controller.epsilon, "wall_seconds": wall,
+                "recent_success": float(np.mean(np.concatenate(recent) == Outcome.SUCCESS))})
+
+    controller.epsilon = epsilon_at(done)
+    try:
+        while done < config.episodes:
+            chunk = min(config.checkpoint_every_episodes, config.episodes - done)
+            chunk_start = time.perf_counter()
+            decisions += fly(scenario, world, controller, config.seed, next_episode, chunk,
+                             on_missions, on_episode)
+            td_seconds += time.perf_counter() - chunk_start
+            next_episode += chunk
+            log_handle.flush()
+            checkpoint.save(net, target, optimizer, memory, {
+                "episodes_done": done, "next_episode": next_episode,
+                "wall_seconds": wall_before + time.perf_counter() - session_start,
+                "decisions": decisions, "td_seconds": td_seconds, "orca": orca_info,
+                "config": asdict(config),
+            })
+    finally:
+        log_handle.close()
+
+    wall = wall_before + time.perf_counter() - session_start
+    report({"phase": "validation"})
+    validation = validate(scenario, net, config.validation_episodes, uavs, config.device)
+    card = {
+        "command": command,
+        "scenario": scenario.name,
+        "seed": config.seed,
+        "episodes": done,
+        "envs": config.envs,
+        "uavs": uavs,
+        "wall_seconds": round(wall, 1),
+        "decisions": decisions,
+        "decisions_per_second": round(decisions / td_seconds, 1) if td_seconds else None,
+        "episodes_per_second": round(done / td_seconds, 2) if td_seconds else None,
+        "orca_initialization": orca_info,
+        "git_commit": git_commit(),
+        "torch": torch.__version__,
+        "device": config.device,
+        "config": asdict(config),
+        "validation": validation,
+        "reproduce": command or "jamnav train",
+    }
+    save_network(net.cpu(), out / "value_net.safetensors", card)
+    from shared.plots import plot_reward_curve  # matplotlib only when writing
+
+    plot_reward_curve(log_path, out / "reward_curve.png")
+    return card
+
+
+def orca_pairs(
+    scenario: Scenario, config: TrainConfig, uavs: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """State-value pairs D from ORCA trajectories: discounted returns of each mission."""
+    gamma = scenario.policy.gamma
+    states: list[np.ndarray] = []
+    values: list[np.ndarray] = []
+
+    def on_missions(missions: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        for mission_states, rewards in missions:
+            if len(rewards):
+                states.append(mission_states)
+                values.append(discounted_returns(rewards, gamma))
+
+    world = VectorWorld(scenario, config.envs, uavs)
+    # Offset seeds so ORCA flies other missions than TD training's first episodes.
+    fly(scenario, world, OrcaController(scenario), config.seed + 1_000_003, 0,
+        config.orca_episodes, on_missions, lambda stats: None)
+    return np.concatenate(states), np.concatenate(values).astype(np.float32)
+

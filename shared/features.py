@@ -1,0 +1,193 @@
+"""What a UAV observes, and the joint state s^jn the value network reads (paper Sec. III-A).
+
+The frame is agent-centric and turned so that +x points at the UAV's destination (as CADRL):
+translating or rotating the whole world leaves the features unchanged, so the value network
+does not depend on the choice of coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from shared.kinematics import wrap_angle
+from shared.scenario import Scenario
+
+OWN_FEATURES = ("v_x", "v_y", "dest_x", "dest_y", "dest_distance", "dest_azimuth",
+                "radius", "max_speed", "heading")
+OTHER_FEATURES = ("p_x", "p_y", "v_x", "v_y", "distance", "azimuth")
+# A missing neighbour (fewer than J_n in the air) is shown as a still UAV this far behind,
+# where it cannot matter, so the network needs no special input for absence.
+_ABSENT_DISTANCE = 1000.0
+
+
+def joint_state_size(scenario: Scenario) -> int:
+    return len(OWN_FEATURES) + len(OTHER_FEATURES) * scenario.policy.observed_uavs + 1
+
+
+@dataclass
+class Observation:
+    """What N UAVs know, batched: their own state and the observable state of the others.
+
+    Own fields have shape (N, ...); others have shape (N, M, ...) with ``others_present``
+    marking the real ones (M may exceed J_n; the nearest J_n are used).
+    """
+
+    position: np.ndarray  # (N, 2)
+    velocity: np.ndarray  # (N, 2)
+    heading: np.ndarray  # (N,)
+    destination: np.ndarray  # (N, 2)
+    radius: np.ndarray  # (N,)
+    max_speed: np.ndarray  # (N,)
+    level: np.ndarray  # (N,) quantized SINR level measured now
+    step: np.ndarray  # (N,) step index of the episode (R_s is checked when n_t divides it)
+    others_position: np.ndarray  # (N, M, 2)
+    others_velocity: np.ndarray  # (N, M, 2)
+    others_radius: np.ndarray  # (N, M)
+    others_present: np.ndarray  # (N, M) bool
+
+    def __len__(self) -> int:
+        return self.position.shape[0]
+
+    @classmethod
+    def of_fleet(
+        cls,
+        position: np.ndarray,
+        velocity: np.ndarray,
+        heading: np.ndarray,
+        destination: np.ndarray,
+        radius: np.ndarray,
+        max_speed: np.ndarray,
+        level: np.ndarray,
+        active: np.ndarray,
+        step: np.ndarray,
+    ) -> Observation:
+        """Observations of every UAV of E fleets of J (arrays (E, J, ...), step (E,)), each
+        seeing the other J - 1 UAVs of its own fleet; rows are ordered env-major."""
+        e, j = active.shape
+        others = np.array([[k for k in range(j) if k != i] for i in range(j)], dtype=np.int64)
+        others = others.reshape(j, max(j - 1, 0))
+
+        def gather(values: np.ndarray) -> np.ndarray:
+            picked = values[:, others]  # (E, J, J-1, ...)
+            return picked.reshape((e * j, j - 1) + values.shape[2:])
+
+        return cls(
+            position=position.reshape(e * j, 2),
+            velocity=velocity.reshape(e * j, 2),
+            heading=heading.reshape(e * j),
+            destination=destination.reshape(e * j, 2),
+            radius=radius.reshape(e * j),
+            max_speed=max_speed.reshape(e * j),
+            level=level.reshape(e * j),
+            step=np.repeat(step, j),
+            others_position=gather(position),
+            others_velocity=gather(velocity),
+            others_radius=gather(radius),
+            others_present=gather(active),
+        )
+
+    def select(self, rows: np.ndarray) -> Observation:
+        return Observation(**{name: value[rows] for name, value in vars(self).items()})
+
+    def nearest_neighbours(self, count: int) -> Observation:
+        """The same observation keeping only the ``count`` nearest present others, nearest
+        first (absent ones last): the J_n UAVs a UAV watches, chosen once per decision."""
+        relative = self.others_position - self.position[:, None, :]
+        distance = np.where(self.others_present, np.hypot(relative[..., 0], relative[..., 1]),
+                            np.inf)
+        order = np.argsort(distance, axis=1, kind="stable")[:, :count]
+        rows = np.arange(len(self))[:, None]
+        fields = dict(vars(self))
+        for name in ("others_position", "others_velocity", "others_radius", "others_present"):
+            fields[name] = fields[name][rows, order]
+        return Observation(**fields)
+
+
+def joint_state(
+    position: np.ndarray,
+    velocity: np.ndarray,
+    heading: np.ndarray,
+    destination: np.ndarray,
+    radius: np.ndarray,
+    max_speed: np.ndarray,
+    level: np.ndarray,
+    others_position: np.ndarray,
+    others_velocity: np.ndarray,
+    others_present: np.ndarray,
+    observed_uavs: int,
+) -> np.ndarray:
+    """Joint state features, float32, shape (..., F).
+
+    Own arrays have shape (..., 2) or (...); others (..., K, 2) or (..., K) with K <= J_n,
+    already chosen and ordered (``Observation.nearest_neighbours``), broadcastable against
+    the own batch (the lookahead passes own (N, A) against others (N, 1, K)).
+    """
+    to_goal = destination - position
+    goal_angle = np.arctan2(to_goal[..., 1], to_goal[..., 0])
+    cos, sin = np.cos(goal_angle), np.sin(goal_angle)
+
+    def rotate(vector: np.ndarray, c: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return vector[..., 0] * c + vector[..., 1] * s, vector[..., 1] * c - vector[..., 0] * s
+
+    goal_distance = np.hypot(to_goal[..., 0], to_goal[..., 1])
+    own_vx, own_vy = rotate(velocity, cos, sin)
+    batch = goal_distance.shape
+    own = [
+        own_vx,
+        own_vy,
+        goal_distance,  # destination in the turned frame: (d_d, 0)
+        np.zeros(batch),
+        goal_distance,
+        np.zeros(batch),  # its azimuth: 0 by construction of the frame
+        np.broadcast_to(radius, batch),
+        np.broadcast_to(max_speed, batch),
+        wrap_angle(heading - goal_angle),
+    ]
+
+    relative = others_position - position[..., None, :]
+    count = others_present.shape[-1]
+    full = batch + (count,)
+    c, s = cos[..., None], sin[..., None]
+    rel_x, rel_y = rotate(np.broadcast_to(relative, full + (2,)), c, s)
+    vel_x, vel_y = rotate(np.broadcast_to(others_velocity, full + (2,)), c, s)
+    present = np.broadcast_to(others_present, full)
+    others = np.empty(full + (len(OTHER_FEATURES),))
+    others[..., 0] = np.where(present, rel_x, -_ABSENT_DISTANCE)
+    others[..., 1] = np.where(present, rel_y, 0.0)
+    others[..., 2] = np.where(present, vel_x, 0.0)
+    others[..., 3] = np.where(present, vel_y, 0.0)
+    others[..., 4] = np.hypot(others[..., 0], others[..., 1])
+    others[..., 5] = np.arctan2(others[..., 1], others[..., 0])
+    missing = observed_uavs - count
+    if missing < 0:
+        raise ValueError("pass at most J_n others: see Observation.nearest_neighbours")
+    if missing:
+        pad = np.zeros(batch + (missing, len(OTHER_FEATURES)))
+        pad[..., 0] = -_ABSENT_DISTANCE
+        pad[..., 4] = _ABSENT_DISTANCE
+        pad[..., 5] = np.pi
+        others = np.concatenate([others, pad], axis=-2)
+    flat_others = others.reshape(batch + (observed_uavs * len(OTHER_FEATURES),))
+    own_block = np.stack(own, axis=-1)
+    level_column = np.broadcast_to(level, batch)[..., None]
+    return np.concatenate([own_block, flat_others, level_column], axis=-1).astype(np.float32)
+
+
+def observation_state(observation: Observation, observed_uavs: int) -> np.ndarray:
+    """Joint state of each UAV as observed now: (N, F)."""
+    observation = observation.nearest_neighbours(observed_uavs)
+    return joint_state(
+        observation.position,
+        observation.velocity,
+        observation.heading,
+        observation.destination,
+        observation.radius,
+        observation.max_speed,
+        observation.level,
+        observation.others_position,
+        observation.others_velocity,
+        observation.others_present,
+        observed_uavs,
+    )

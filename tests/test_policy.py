@@ -1,0 +1,74 @@
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from shared.features import Observation, joint_state_size
+from shared.networks import ValueNetwork
+from shared.policy import LookaheadPolicy, TrueMap
+from shared.radio import RadioModel
+
+
+class DistanceValue(ValueNetwork):
+    """A value that only rewards being close to the destination (feature 4 = d_d)."""
+
+    def forward(self, state):
+        return -0.05 * state[..., 4]
+
+
+def lone_uav(heading, destination, position=(12.5, 0.0)):
+    return Observation(
+        position=np.array([position]),
+        velocity=np.zeros((1, 2)),
+        heading=np.array([heading]),
+        destination=np.array([destination]),
+        radius=np.ones(1),
+        max_speed=np.full(1, 5.0),
+        level=np.array([2]),
+        step=np.array([1]),
+        others_position=np.zeros((1, 0, 2)),
+        others_velocity=np.zeros((1, 0, 2)),
+        others_radius=np.zeros((1, 0)),
+        others_present=np.zeros((1, 0), dtype=bool),
+    )
+
+
+def test_in_an_empty_world_the_policy_heads_to_the_goal(scenario):
+    policy = LookaheadPolicy(scenario, DistanceValue(joint_state_size(scenario), 2.0))
+    radio_map = TrueMap(RadioModel(scenario), None)
+    for goal_angle in np.linspace(-math.pi, math.pi, 9):
+        destination = (12.5 + 30 * math.cos(goal_angle), 30 * math.sin(goal_angle))
+        decision = policy.decide(lone_uav(goal_angle, destination), radio_map)
+        assert decision.speed[0] == scenario.uav.max_speed_mps
+        assert abs((decision.heading[0] - goal_angle + math.pi) % (2 * math.pi) - math.pi) < 1e-9
+
+
+def test_turn_limit_bounds_the_chosen_heading(scenario):
+    policy = LookaheadPolicy(scenario, DistanceValue(joint_state_size(scenario), 2.0))
+    decision = policy.decide(lone_uav(0.0, (12.5, 30.0)), TrueMap(RadioModel(scenario), None))
+    assert math.isclose(decision.heading[0], math.radians(scenario.uav.turn_rate_deg_s))
+
+
+def test_arrival_is_taken_when_within_reach(scenario):
+    policy = LookaheadPolicy(scenario, DistanceValue(joint_state_size(scenario), 2.0))
+    decision = policy.decide(lone_uav(0.0, (15.0, 0.0)), TrueMap(RadioModel(scenario), None))
+    assert math.isclose(decision.value[0], scenario.rewards.arrival + scenario.rewards.step)
+
+
+def test_batched_decisions_equal_one_by_one(scenario):
+    torch.manual_seed(0)
+    policy = LookaheadPolicy(scenario, ValueNetwork(joint_state_size(scenario), 2.0))
+    radio_map = TrueMap(RadioModel(scenario), None)
+    rng = np.random.default_rng(0)
+    active = np.ones((2, 3), dtype=bool)
+    fleet = Observation.of_fleet(
+        rng.uniform(-40, 40, (2, 3, 2)), rng.uniform(-3, 3, (2, 3, 2)),
+        rng.uniform(-3, 3, (2, 3)), rng.uniform(-40, 40, (2, 3, 2)), np.ones((2, 3)),
+        np.full((2, 3), 5.0), rng.integers(0, 3, (2, 3)), active, np.array([0, 1]),
+    )
+    together = policy.decide(fleet, radio_map)
+    for row in range(len(fleet)):
+        alone = policy.decide(fleet.select(np.array([row])), radio_map)
+        assert alone.action[0] == together.action[row]
