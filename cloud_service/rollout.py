@@ -17,8 +17,8 @@ from shared.features import Observation
 from shared.orca import orca_velocities, preferred_velocity_toward
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting
-from shared.policy import LookaheadPolicy, RadioMap, TrueMap
-from shared.radio import JammerParams
+from shared.policy import LevelRaster, LookaheadPolicy, RadioMap, RasterMap
+from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 from world_sim.core import VectorWorld, episode_seed
 
@@ -29,19 +29,52 @@ def fleet_observation(world: VectorWorld) -> Observation:
     """What every UAV of the world observes, one row per UAV (env-major)."""
     return Observation.of_fleet(
         world.position, world.velocity, world.heading, world.destination, world.radius,
-        world.max_speed, world.level, world.active, world.steps,
+        world.max_speed, world.level, world.below_steps, world.active, world.steps,
     )
 
 
-def perfect_map(world: VectorWorld, rows: np.ndarray) -> RadioMap:
-    """The true current map of each row's environment."""
-    env = rows // world.num_uavs
-    return TrueMap(world.radio, world.jammer(env))
+MAP_SPACING_M = 0.5  # raster spacing of the lookahead's maps: well below a UAV's radius
 
 
-def outdated_map(world: VectorWorld, rows: np.ndarray) -> RadioMap:
-    """The map without any jammer."""
-    return TrueMap(world.radio, None)
+class RasterMaps:
+    """Radio maps of the world's environments as rasters, cached per jammer setting."""
+
+    def __init__(self, scenario: Scenario, jam: bool = True):
+        self.scenario = scenario
+        self.radio = RadioModel(scenario)
+        self.jam = jam
+        self.cache: dict[tuple[float, ...], LevelRaster] = {}
+
+    def raster(self, jammer: JammerParams | None) -> LevelRaster:
+        key = () if jammer is None or jammer.power_w == 0 else tuple(map(float, jammer))
+        if key not in self.cache:
+            params = JammerParams(*key) if key else None
+            self.cache[key] = LevelRaster.sample(
+                self.scenario, lambda xy: self.radio.evaluate(xy, params).level, MAP_SPACING_M
+            )
+        return self.cache[key]
+
+    def __call__(self, world: VectorWorld, rows: np.ndarray) -> RadioMap:
+        if not self.jam:
+            return self.raster(None)
+        env = rows // world.num_uavs
+        jammers = [(world.jammer_x[e], world.jammer_y[e], world.jammer_power[e],
+                    world.jammer_height[e]) for e in range(world.num_envs)]
+        keys = sorted(set(jammers[e] for e in np.unique(env)))
+        position = {key: index for index, key in enumerate(keys)}
+        rasters = [self.raster(JammerParams(*key)) for key in keys]
+        which = np.array([position[jammers[e]] for e in env], dtype=np.int64)
+        return RasterMap(rasters, which)
+
+
+def perfect_maps(scenario: Scenario) -> RasterMaps:
+    """The true current map of each UAV's environment ("perfectly updated map")."""
+    return RasterMaps(scenario, jam=True)
+
+
+def outdated_maps(scenario: Scenario) -> RasterMaps:
+    """The map of the world without any jammer ("outdated map")."""
+    return RasterMaps(scenario, jam=False)
 
 
 class Controller(Protocol):

@@ -33,7 +33,7 @@ from cloud_service.rollout import (
     OrcaController,
     fleet_observation,
     outcome_rates,
-    perfect_map,
+    perfect_maps,
     run_episodes,
 )
 from shared.features import joint_state_size, observation_state
@@ -64,7 +64,7 @@ class TrainConfig:
     epsilon_end: float = 0.1  # paper
     epsilon_decay_share: float = 0.5  # epsilon reaches its end value halfway through
     memory_capacity: int | None = None  # None: paper's 30,000 for 2 UAVs, 100,000 for more
-    updates_per_episode: int = 2
+    updates_per_episode: int = 8
     target_sync_episodes: int = 50
     orca_episodes: int = 1000
     orca_epochs: int = 30
@@ -153,6 +153,12 @@ class TrajectoryRecorder:
         return self.states[env, uav, :length], self.rewards[env, uav, :length]
 
 
+def adam(net: ValueNetwork, config: TrainConfig) -> torch.optim.Adam:
+    """The paper's optimizer; the fused kernel halves the cost of a step of this small net."""
+    return torch.optim.Adam(net.parameters(), lr=config.learning_rate,
+                            weight_decay=config.weight_decay, fused=True)
+
+
 def fit_value_net(
     net: ValueNetwork,
     states: np.ndarray,
@@ -164,9 +170,7 @@ def fit_value_net(
     """Line 1 of Algorithm 1: regress the network on state-value pairs; returns the last MSE."""
     device = torch.device(config.device)
     net.standardize.fit(torch.from_numpy(states).to(device))
-    optimizer = torch.optim.Adam(
-        net.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
-    )
+    optimizer = adam(net, config)
     x_all, y_all = torch.from_numpy(states).to(device), torch.from_numpy(values).to(device)
     loss_value = math.nan
     for _ in range(epochs):
@@ -177,7 +181,7 @@ def fit_value_net(
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
-            loss_value = float(loss)
+            loss_value = float(loss.detach())
     return loss_value
 
 
@@ -210,7 +214,6 @@ def fly(
     """Fly episodes first_episode .. first_episode+episodes-1 under the training jammer
     schedule; every ended mission's (states, rewards) goes to ``on_missions``. Returns the
     number of decisions taken."""
-    observed = scenario.policy.observed_uavs
     period = scenario.training.jammer_change_every_episodes
     envs = world.num_envs
     recorder = TrajectoryRecorder(envs, world.num_uavs, world.step_limit,
@@ -235,7 +238,7 @@ def fly(
         running = slot_episode >= 0
         live = world.active & running[:, None]
         rows = np.flatnonzero(live.ravel())
-        states = observation_state(fleet_observation(world).select(rows), observed)
+        states = observation_state(fleet_observation(world).select(rows), scenario)
         speed, heading = controller.act(world)
         result = world.step(speed, heading)
         decisions += rows.size
@@ -281,7 +284,7 @@ def validate(
     jammer setting: the share of UAV-episodes ending in each outcome."""
     policy = LookaheadPolicy(scenario, net, device)
     outcomes = [
-        run_episodes(scenario, LookaheadController(policy, perfect_map), episodes,
+        run_episodes(scenario, LookaheadController(policy, perfect_maps(scenario)), episodes,
                      VALIDATION_SEED, setting, uavs).outcomes
         for setting in TABLE_I_JAMMERS
     ]
@@ -357,8 +360,7 @@ def train(
     report = progress or (lambda info: None)
 
     if resume and checkpoint.exists():
-        optimizer = torch.optim.Adam(net.parameters(), lr=config.learning_rate,
-                                     weight_decay=config.weight_decay)
+        optimizer = adam(net, config)
         state = checkpoint.load(net, target, optimizer, memory)
         done, next_episode = state["episodes_done"], state["next_episode"]
         wall_before, decisions, td_seconds = (state["wall_seconds"], state["decisions"],
@@ -375,15 +377,14 @@ def train(
         orca_info = {"episodes": config.orca_episodes, "pairs": int(len(values)),
                      "epochs": config.orca_epochs, "final_mse": mse,
                      "seconds": time.perf_counter() - started}
-        optimizer = torch.optim.Adam(net.parameters(), lr=config.learning_rate,
-                                     weight_decay=config.weight_decay)
+        optimizer = adam(net, config)
         target.load_state_dict(net.state_dict())
         done, next_episode, wall_before, decisions, td_seconds = 0, 0, orca_info["seconds"], 0, 0.0
         with log_path.open("w", newline="") as handle:
             csv.writer(handle).writerow(LOG_FIELDS)
 
     policy = LookaheadPolicy(scenario, net, config.device)
-    controller = LookaheadController(policy, perfect_map, rng=rng)
+    controller = LookaheadController(policy, perfect_maps(scenario), rng=rng)
     world = VectorWorld(scenario, config.envs, uavs)
     gamma = scenario.policy.gamma
     decay_episodes = max(1, int(config.episodes * config.epsilon_decay_share))

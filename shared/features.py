@@ -23,7 +23,8 @@ _ABSENT_DISTANCE = 1000.0
 
 
 def joint_state_size(scenario: Scenario) -> int:
-    return len(OWN_FEATURES) + len(OTHER_FEATURES) * scenario.policy.observed_uavs + 1
+    memory = 1 if scenario.policy.disconnection_memory else 0
+    return len(OWN_FEATURES) + len(OTHER_FEATURES) * scenario.policy.observed_uavs + 1 + memory
 
 
 @dataclass
@@ -41,6 +42,7 @@ class Observation:
     radius: np.ndarray  # (N,)
     max_speed: np.ndarray  # (N,)
     level: np.ndarray  # (N,) quantized SINR level measured now
+    below_steps: np.ndarray  # (N,) consecutive measurements below T_s up to now
     step: np.ndarray  # (N,) step index of the episode (R_s is checked when n_t divides it)
     others_position: np.ndarray  # (N, M, 2)
     others_velocity: np.ndarray  # (N, M, 2)
@@ -60,6 +62,7 @@ class Observation:
         radius: np.ndarray,
         max_speed: np.ndarray,
         level: np.ndarray,
+        below_steps: np.ndarray,
         active: np.ndarray,
         step: np.ndarray,
     ) -> Observation:
@@ -81,6 +84,7 @@ class Observation:
             radius=radius.reshape(e * j),
             max_speed=max_speed.reshape(e * j),
             level=level.reshape(e * j),
+            below_steps=below_steps.reshape(e * j),
             step=np.repeat(step, j),
             others_position=gather(position),
             others_velocity=gather(velocity),
@@ -117,6 +121,7 @@ def joint_state(
     others_velocity: np.ndarray,
     others_present: np.ndarray,
     observed_uavs: int,
+    below_steps: np.ndarray | None = None,
 ) -> np.ndarray:
     """Joint state features, float32, shape (..., F).
 
@@ -125,58 +130,58 @@ def joint_state(
     the own batch (the lookahead passes own (N, A) against others (N, 1, K)).
     """
     to_goal = destination - position
-    goal_angle = np.arctan2(to_goal[..., 1], to_goal[..., 0])
-    cos, sin = np.cos(goal_angle), np.sin(goal_angle)
-
-    def rotate(vector: np.ndarray, c: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return vector[..., 0] * c + vector[..., 1] * s, vector[..., 1] * c - vector[..., 0] * s
-
     goal_distance = np.hypot(to_goal[..., 0], to_goal[..., 1])
-    own_vx, own_vy = rotate(velocity, cos, sin)
     batch = goal_distance.shape
-    own = [
-        own_vx,
-        own_vy,
-        goal_distance,  # destination in the turned frame: (d_d, 0)
-        np.zeros(batch),
-        goal_distance,
-        np.zeros(batch),  # its azimuth: 0 by construction of the frame
-        np.broadcast_to(radius, batch),
-        np.broadcast_to(max_speed, batch),
-        wrap_angle(heading - goal_angle),
-    ]
+    # The frame's +x axis is the unit vector to the goal (any axis at the goal itself).
+    safe = np.where(goal_distance > 0, goal_distance, 1.0)
+    cos = np.where(goal_distance > 0, to_goal[..., 0] / safe, 1.0)
+    sin = np.where(goal_distance > 0, to_goal[..., 1] / safe, 0.0)
+    memory = below_steps is not None
+    size = len(OWN_FEATURES) + len(OTHER_FEATURES) * observed_uavs + 1 + memory
+    out = np.zeros(batch + (size,), dtype=np.float32)
+    vx, vy = velocity[..., 0], velocity[..., 1]
+    out[..., 0] = vx * cos + vy * sin
+    out[..., 1] = vy * cos - vx * sin
+    out[..., 2] = goal_distance  # destination in the turned frame: (d_d, 0), azimuth 0
+    out[..., 4] = goal_distance
+    out[..., 6] = radius
+    out[..., 7] = max_speed
+    out[..., 8] = wrap_angle(heading - np.arctan2(sin, cos))
 
-    relative = others_position - position[..., None, :]
     count = others_present.shape[-1]
-    full = batch + (count,)
-    c, s = cos[..., None], sin[..., None]
-    rel_x, rel_y = rotate(np.broadcast_to(relative, full + (2,)), c, s)
-    vel_x, vel_y = rotate(np.broadcast_to(others_velocity, full + (2,)), c, s)
-    present = np.broadcast_to(others_present, full)
-    others = np.empty(full + (len(OTHER_FEATURES),))
-    others[..., 0] = np.where(present, rel_x, -_ABSENT_DISTANCE)
-    others[..., 1] = np.where(present, rel_y, 0.0)
-    others[..., 2] = np.where(present, vel_x, 0.0)
-    others[..., 3] = np.where(present, vel_y, 0.0)
-    others[..., 4] = np.hypot(others[..., 0], others[..., 1])
-    others[..., 5] = np.arctan2(others[..., 1], others[..., 0])
-    missing = observed_uavs - count
-    if missing < 0:
+    if count > observed_uavs:
         raise ValueError("pass at most J_n others: see Observation.nearest_neighbours")
-    if missing:
-        pad = np.zeros(batch + (missing, len(OTHER_FEATURES)))
-        pad[..., 0] = -_ABSENT_DISTANCE
-        pad[..., 4] = _ABSENT_DISTANCE
-        pad[..., 5] = np.pi
-        others = np.concatenate([others, pad], axis=-2)
-    flat_others = others.reshape(batch + (observed_uavs * len(OTHER_FEATURES),))
-    own_block = np.stack(own, axis=-1)
-    level_column = np.broadcast_to(level, batch)[..., None]
-    return np.concatenate([own_block, flat_others, level_column], axis=-1).astype(np.float32)
+    width = len(OTHER_FEATURES)
+    for k in range(observed_uavs):
+        column = len(OWN_FEATURES) + k * width
+        block = out[..., column : column + width]
+        if k >= count:
+            block[..., 0] = -_ABSENT_DISTANCE
+            block[..., 4] = _ABSENT_DISTANCE
+            block[..., 5] = np.pi
+            continue
+        present = others_present[..., k]
+        rx = others_position[..., k, 0] - position[..., 0]
+        ry = others_position[..., k, 1] - position[..., 1]
+        ovx, ovy = others_velocity[..., k, 0], others_velocity[..., k, 1]
+        px = np.where(present, rx * cos + ry * sin, -_ABSENT_DISTANCE)
+        py = np.where(present, ry * cos - rx * sin, 0.0)
+        block[..., 0] = px
+        block[..., 1] = py
+        block[..., 2] = np.where(present, ovx * cos + ovy * sin, 0.0)
+        block[..., 3] = np.where(present, ovy * cos - ovx * sin, 0.0)
+        block[..., 4] = np.hypot(px, py)
+        block[..., 5] = np.arctan2(py, px)
+    out[..., size - 1 - memory] = level
+    if memory:
+        # How long the UAV has been disconnected: tells a harmless gap from a fatal one.
+        out[..., size - 1] = below_steps
+    return out
 
 
-def observation_state(observation: Observation, observed_uavs: int) -> np.ndarray:
+def observation_state(observation: Observation, scenario: Scenario) -> np.ndarray:
     """Joint state of each UAV as observed now: (N, F)."""
+    observed_uavs = scenario.policy.observed_uavs
     observation = observation.nearest_neighbours(observed_uavs)
     return joint_state(
         observation.position,
@@ -190,4 +195,5 @@ def observation_state(observation: Observation, observed_uavs: int) -> np.ndarra
         observation.others_velocity,
         observation.others_present,
         observed_uavs,
+        observation.below_steps if scenario.policy.disconnection_memory else None,
     )

@@ -9,6 +9,7 @@ call this same code.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple, Protocol
 
 import numpy as np
@@ -30,7 +31,7 @@ class RadioMap(Protocol):
 
 
 class TrueMap:
-    """The simulator's map with the current jammer ("perfectly updated map")."""
+    """The simulator's map with a given jammer, computed exactly at every query."""
 
     def __init__(self, radio: RadioModel, jammer: JammerParams | None):
         self.radio = radio
@@ -40,9 +41,51 @@ class TrueMap:
         return self.radio.evaluate(xy, self.jammer).level
 
 
-def outdated_map(radio: RadioModel) -> TrueMap:
-    """The map of the world without a jammer: what a UAV knows before any jamming."""
-    return TrueMap(radio, None)
+class LevelRaster:
+    """Quantized levels sampled on a square grid over the area plus a margin: the stored form
+    of a radio map. A query snaps to the nearest grid node, so it costs an index lookup
+    instead of a radio (or network) evaluation; beyond the margin the edge value holds."""
+
+    def __init__(self, levels: np.ndarray, x0: float, y0: float, spacing: float):
+        self.levels = np.ascontiguousarray(levels, dtype=np.int8)
+        self.x0, self.y0, self.spacing = x0, y0, spacing
+
+    @classmethod
+    def sample(
+        cls,
+        scenario: Scenario,
+        level_fn: Callable[[np.ndarray], np.ndarray],
+        spacing: float,
+    ) -> LevelRaster:
+        area = scenario.area
+        margin = scenario.uav.max_speed_mps * scenario.timing.step_s + spacing
+        xs = np.arange(area.x_min - margin, area.x_max + margin + spacing / 2, spacing)
+        ys = np.arange(area.y_min - margin, area.y_max + margin + spacing / 2, spacing)
+        grid = np.stack(np.meshgrid(xs, ys, indexing="xy"), axis=-1)
+        return cls(level_fn(grid), float(xs[0]), float(ys[0]), spacing)
+
+    def indices(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rows, cols = self.levels.shape[-2:]
+        col = np.rint((xy[..., 0] - self.x0) / self.spacing).astype(np.int64)
+        row = np.rint((xy[..., 1] - self.y0) / self.spacing).astype(np.int64)
+        return np.clip(row, 0, rows - 1), np.clip(col, 0, cols - 1)
+
+    def level_at(self, xy: np.ndarray) -> np.ndarray:
+        return self.levels[self.indices(xy)]
+
+
+class RasterMap:
+    """Several rasters of one shape, each UAV row reading its own (per-environment jammers)."""
+
+    def __init__(self, rasters: list[LevelRaster], which: np.ndarray):
+        self.first = rasters[0]
+        self.stack = np.stack([raster.levels for raster in rasters])
+        self.which = which
+
+    def level_at(self, xy: np.ndarray) -> np.ndarray:
+        row, col = self.first.indices(xy)
+        which = self.which.reshape(self.which.shape + (1,) * (xy.ndim - 2))
+        return self.stack[which, row, col]
 
 
 class Decision(NamedTuple):
@@ -61,6 +104,8 @@ class LookaheadPolicy:
         self.gamma = scenario.policy.gamma
         self.observed_uavs = scenario.policy.observed_uavs
         self.tolerance = scenario.uav.arrival_tolerance_m
+        self.memory = scenario.policy.disconnection_memory
+        self.disconnection_limit = scenario.timing.disconnection_limit_steps
         self.device = torch.device(device)
         self.value_net = value_net.to(self.device).eval()
 
@@ -97,6 +142,7 @@ class LookaheadPolicy:
             self.dt,
         )
         level = radio_map.level_at(next_position)
+        below = np.where(level == 0, observation.below_steps[:, None] + 1, 0)
         check_now = self.rewards.is_check_step(observation.step)[:, None]
         reward = self.rewards.total(level, check_now, gap, arrived)
 
@@ -112,10 +158,16 @@ class LookaheadPolicy:
             observation.others_velocity[:, None],
             observation.others_present[:, None],
             self.observed_uavs,
+            below if self.memory else None,
         )
         next_value = self.values(states.reshape(-1, states.shape[-1])).reshape(n, -1)
-        # Arrival and collision end the mission: nothing follows them.
+        # Arrival and collision end the mission: nothing follows them. A UAV that counts its
+        # time below T_s also knows which steps would end it by disconnection.
         terminal = arrived | (gap <= 0)
+        if self.memory:
+            lost = ~arrived & (gap > 0) & (below > self.disconnection_limit)
+            terminal |= lost
+            reward = reward + self.rewards.disconnection * lost
         score = reward + self.gamma * np.where(terminal, 0.0, next_value)
         chosen = score.argmax(axis=1)
         value = score[np.arange(n), chosen]

@@ -124,6 +124,7 @@ class Rewards(_Strict):
     discomfort_distance_m: NonNegative
     arrival: Finite
     step: Finite
+    disconnection: Finite = 0.0
     connectivity_check_every_steps: int | None = Field(default=None, ge=1)
 
 
@@ -141,6 +142,7 @@ class Policy(_Strict):
     nearby_gbs: int = Field(ge=1)
     value_scale: Positive
     orca_time_horizon_s: Positive
+    disconnection_memory: bool = False
 
 
 class Training(_Strict):

@@ -27,6 +27,7 @@ def fleet(rng, uavs=5):
         radius=np.full((1, uavs), 1.0),
         max_speed=np.full((1, uavs), 5.0),
         level=rng.integers(0, 3, (1, uavs)),
+        below_steps=rng.integers(0, 3, (1, uavs)),
         active=active,
         step=np.zeros(1, dtype=int),
     )
@@ -47,8 +48,10 @@ def transformed(arrays, angle, shift):
        dx=st.floats(-100, 100), dy=st.floats(-100, 100))
 def test_rotating_and_translating_the_world_changes_nothing(scenario, seed, angle, dx, dy):
     arrays = fleet(np.random.default_rng(seed))
-    before = observation_state(Observation.of_fleet(**arrays), 4)
-    after = observation_state(Observation.of_fleet(**transformed(arrays, angle, (dx, dy))), 4)
+    before = observation_state(Observation.of_fleet(**arrays), scenario)
+    after = observation_state(
+        Observation.of_fleet(**transformed(arrays, angle, (dx, dy))), scenario
+    )
     np.testing.assert_allclose(after, before, atol=2e-3, rtol=1e-4)
 
 
@@ -62,10 +65,11 @@ def test_layout_by_hand(scenario):
         radius=np.ones((1, 2)),
         max_speed=np.full((1, 2), 5.0),
         level=np.array([[2, 0]]),
+        below_steps=np.array([[0, 1]]),
         active=np.ones((1, 2), dtype=bool),
         step=np.zeros(1, dtype=int),
     )
-    state = observation_state(Observation.of_fleet(**arrays), 4)
+    state = observation_state(Observation.of_fleet(**arrays), scenario)
     assert state.shape == (2, joint_state_size(scenario))
     own = dict(zip(OWN_FEATURES, state[0, : len(OWN_FEATURES)], strict=True))
     # Frame turned so +x points north: own velocity (2, 0), destination (10, 0), heading 0.
@@ -83,6 +87,6 @@ def test_layout_by_hand(scenario):
 
 def test_finished_uavs_are_not_neighbours(scenario):
     arrays = fleet(np.random.default_rng(1))
-    state = observation_state(Observation.of_fleet(**arrays), 4)
+    state = observation_state(Observation.of_fleet(**arrays), scenario)
     distances = state[0, len(OWN_FEATURES) + 4 : -1 : 6]
     assert np.count_nonzero(distances < 999) == 3  # 5 UAVs, itself and the finished one out

@@ -8,7 +8,7 @@ import torch
 from shared.features import Observation, joint_state_size
 from shared.networks import ValueNetwork
 from shared.policy import LookaheadPolicy, TrueMap
-from shared.radio import RadioModel
+from shared.radio import JammerParams, RadioModel
 
 
 class DistanceValue(ValueNetwork):
@@ -27,6 +27,7 @@ def lone_uav(heading, destination, position=(12.5, 0.0)):
         radius=np.ones(1),
         max_speed=np.full(1, 5.0),
         level=np.array([2]),
+        below_steps=np.array([0]),
         step=np.array([1]),
         others_position=np.zeros((1, 0, 2)),
         others_velocity=np.zeros((1, 0, 2)),
@@ -66,9 +67,31 @@ def test_batched_decisions_equal_one_by_one(scenario):
     fleet = Observation.of_fleet(
         rng.uniform(-40, 40, (2, 3, 2)), rng.uniform(-3, 3, (2, 3, 2)),
         rng.uniform(-3, 3, (2, 3)), rng.uniform(-40, 40, (2, 3, 2)), np.ones((2, 3)),
-        np.full((2, 3), 5.0), rng.integers(0, 3, (2, 3)), active, np.array([0, 1]),
+        np.full((2, 3), 5.0), rng.integers(0, 3, (2, 3)), rng.integers(0, 2, (2, 3)), active,
+        np.array([0, 1]),
     )
     together = policy.decide(fleet, radio_map)
     for row in range(len(fleet)):
         alone = policy.decide(fleet.select(np.array([row])), radio_map)
         assert alone.action[0] == together.action[row]
+
+
+def test_raster_map_agrees_with_the_exact_map(scenario):
+    from cloud_service.rollout import MAP_SPACING_M, perfect_maps
+    from world_sim.core import VectorWorld
+
+    world = VectorWorld(scenario, 2, 2)
+    world.reset([0, 1], [3, 4])
+    world.set_jammer([1], None)
+    maps = perfect_maps(scenario)(world, np.arange(4))
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-50, 50, (4, 500, 2))
+    radio = RadioModel(scenario)
+    jammer = JammerParams(*(float(v[0, 0]) for v in world.jammer([0])))
+    exact = np.stack([radio.evaluate(xy[row], jammer if row < 2 else None).level
+                      for row in range(4)])
+    assert (maps.level_at(xy) == exact).mean() > 0.98
+    # At grid nodes the raster is exact.
+    node = np.array([[[MAP_SPACING_M * 20, -MAP_SPACING_M * 7]]] * 4)
+    want = [radio.evaluate(node[0, 0], jammer).level] * 2 + [radio.evaluate(node[0, 0]).level] * 2
+    np.testing.assert_array_equal(maps.level_at(node)[:, 0], want)

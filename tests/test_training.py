@@ -1,0 +1,77 @@
+"""Value-network training: outputs, resume, and that learning actually happens."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from cloud_service.value_training import (
+    ReplayMemory,
+    TrainConfig,
+    discounted_returns,
+    td_targets,
+    train,
+)
+from shared.networks import ValueNetwork, load_network
+
+CARD_KEYS = {"command", "seed", "episodes", "wall_seconds", "decisions_per_second", "git_commit",
+             "validation"}
+
+
+def tiny(episodes, **extra):
+    return TrainConfig(episodes=episodes, envs=8, orca_episodes=40, orca_epochs=2,
+                       checkpoint_every_episodes=20, validation_episodes=2, **extra)
+
+
+def test_outputs_card_and_resume(scenario, tmp_path):
+    card = train(scenario, tiny(20), tmp_path, command="jamnav train (test)")
+    assert CARD_KEYS <= card.keys()
+    assert {"success_rate", "disconnection_rate", "collision_rate"} <= card["validation"].keys()
+    for name in ("value_net.safetensors", "value_net.json", "train_log.csv", "reward_curve.png"):
+        assert (tmp_path / name).is_file(), name
+    network, saved = load_network(tmp_path / "value_net.safetensors")
+    assert saved["sha256"] == card_sha(tmp_path)
+    assert isinstance(network, ValueNetwork)
+
+    resumed = train(scenario, tiny(40), tmp_path, resume=True)
+    assert resumed["episodes"] == 40
+    with (tmp_path / "train_log.csv").open() as handle:
+        episodes = [int(row["episode"]) for row in csv.DictReader(handle)]
+    assert episodes == list(range(1, 41))
+
+
+def card_sha(out):
+    return json.loads((out / "value_net.json").read_text())["sha256"]
+
+
+def test_td_targets_bootstrap_except_at_the_end():
+    class Constant(ValueNetwork):
+        def forward(self, state):
+            return state[..., 0] * 0 + 0.5
+
+    states = np.zeros((3, 4), dtype=np.float32)
+    rewards = np.array([-0.1, -0.1, 2.0], dtype=np.float32)
+    _, targets = td_targets(Constant(4, 1.0), [(states, rewards)], 0.9, "cpu")
+    np.testing.assert_allclose(targets, [-0.1 + 0.45, -0.1 + 0.45, 2.0], rtol=1e-6)
+    np.testing.assert_allclose(discounted_returns(rewards.astype(float), 0.5),
+                               [-0.1 - 0.05 + 0.5, -0.1 + 1.0, 2.0])
+
+
+def test_replay_memory_keeps_the_most_recent():
+    memory = ReplayMemory(5, 1)
+    memory.push(np.arange(8, dtype=np.float32)[:, None], np.arange(8, dtype=np.float32))
+    assert memory.size == 5 and sorted(memory.values.tolist()) == [3, 4, 5, 6, 7]
+
+
+@pytest.mark.slow
+def test_short_training_learns_to_navigate(scenario, tmp_path):
+    # Greedy flight from the ORCA initialization alone succeeds on ~0 % of the validation
+    # missions (it hovers at the first uncovered street); this run measured 29 %.
+    config = TrainConfig(episodes=3000, envs=64, orca_episodes=300, orca_epochs=10,
+                         checkpoint_every_episodes=3000, validation_episodes=10,
+                         epsilon_decay_share=0.3)
+    card = train(scenario, config, tmp_path)
+    assert card["validation"]["success_rate"] >= 0.2
