@@ -159,6 +159,78 @@ def cmd_map(args: argparse.Namespace) -> int:
     return 0
 
 
+DEFAULT_VALUE_NET = Path(__file__).resolve().parent.parent / "models" / "value_net.safetensors"
+EVAL_METHODS = ("perfect", "outdated", "orca", "straight")
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    import torch
+
+    from cloud_service.rollout import (
+        LookaheadController,
+        OrcaController,
+        StraightController,
+        outcome_rates,
+        outdated_maps,
+        perfect_maps,
+        run_episodes,
+    )
+    from jamnav.progress import ProgressBar
+    from shared.features import joint_state_size
+    from shared.networks import WeightsError, load_network
+    from shared.outcomes import Outcome
+    from shared.paper import JammerSetting
+    from shared.policy import LookaheadPolicy
+
+    if args.episodes < 1:
+        raise UsageError("--episodes must be at least 1")
+    if args.uavs is not None and not 1 <= args.uavs <= 64:
+        raise UsageError("--uavs must be between 1 and 64")
+    scenario = scenario_with_jammer(args)
+    jammer = RadioModel.jammer_of(scenario)
+    setting = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
+    torch.set_num_threads(1)
+    if args.method in ("perfect", "outdated"):
+        expected = {"kind": "value", "input_size": joint_state_size(scenario)}
+        try:
+            network, _ = load_network(Path(args.model), expected)
+        except WeightsError as exc:
+            raise UsageError(f"--model: {exc}") from None
+        maps = perfect_maps(scenario) if args.method == "perfect" else outdated_maps(scenario)
+        controller = LookaheadController(LookaheadPolicy(scenario, network), maps)
+    elif args.method == "orca":
+        controller = OrcaController(scenario)
+    else:
+        controller = StraightController()
+    bar = ProgressBar(f"eval {args.method}", args.episodes)
+    finished = 0
+
+    def on_episode(_episode: int) -> None:
+        nonlocal finished
+        finished += 1
+        bar.update(finished)
+
+    results = run_episodes(scenario, controller, args.episodes, args.seed, setting, args.uavs,
+                           on_episode=on_episode)
+    report = {
+        "method": args.method,
+        **outcome_rates(results.outcomes),
+        "episodes": args.episodes,
+        "uavs": int(results.outcomes.shape[1]),
+        "seed": args.seed,
+        "jammer": None if setting is None else setting._asdict(),
+        "scenario": scenario.name,
+    }
+    if args.per_episode:
+        report["outcomes"] = [[Outcome(code).label for code in row] for row in results.outcomes]
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(f"{args.method}: " + ", ".join(
+            f"{key[:-5]} {report[key]:.1%}" for key in report if key.endswith("_rate")))
+    return 0
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from cloud_service.value_training import TrainConfig, train
     from jamnav.progress import ProgressBar
@@ -231,6 +303,20 @@ def build_parser() -> argparse.ArgumentParser:
     coverage.add_argument("--out", required=True, metavar="FILE.png")
     coverage.add_argument("--resolution", type=int, default=301, help="grid points per side")
     coverage.set_defaults(handler=cmd_map)
+
+    evaluation = commands.add_parser("eval", help="fly seeded episodes in-process and score them")
+    _add_scenario(evaluation)
+    _add_jammer(evaluation)
+    evaluation.add_argument("--method", choices=EVAL_METHODS, default="perfect")
+    evaluation.add_argument("--episodes", type=int, default=200)
+    evaluation.add_argument("--uavs", type=int, default=None, help="UAVs per episode")
+    evaluation.add_argument("--seed", type=int, default=0)
+    evaluation.add_argument("--model", default=str(DEFAULT_VALUE_NET),
+                            help="value network (default: the shipped one)")
+    evaluation.add_argument("--json", action="store_true", help="print JSON")
+    evaluation.add_argument("--per-episode", action="store_true",
+                            help="include each episode's per-UAV outcomes")
+    evaluation.set_defaults(handler=cmd_eval)
 
     training = commands.add_parser("train", help="train the value network (Algorithm 1)")
     _add_scenario(training)
