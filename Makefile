@@ -23,6 +23,8 @@ $(STAMP): pyproject.toml | $(BIN)/python
 demo: install
 	$(BIN)/jamnav map --no-jammer --out results/demo/coverage_no_jammer.png
 	$(BIN)/jamnav map --jammer 0,0,1 --out results/demo/coverage_jammer_0_0_1W.png
+	$(BIN)/jamnav eval --method perfect --jammer 0,0,1 --episodes 100
+	$(BIN)/jamnav eval --method outdated --jammer 0,0,1 --episodes 100
 
 test: install
 	$(BIN)/python -m pytest

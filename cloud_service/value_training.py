@@ -346,6 +346,7 @@ def train(
     """Run Algorithm 1 and write value_net.safetensors, its card, train_log.csv and the
     reward curve into ``out``. Returns the card."""
     out.mkdir(parents=True, exist_ok=True)
+    commit = git_commit()  # the code that trains, even if the tree moves on meanwhile
     uavs = config.uavs or scenario.missions.uav_count
     device = torch.device(config.device)
     torch.set_num_threads(config.threads)
@@ -463,7 +464,7 @@ def train(
         "decisions_per_second": round(decisions / td_seconds, 1) if td_seconds else None,
         "episodes_per_second": round(done / td_seconds, 2) if td_seconds else None,
         "orca_initialization": orca_info,
-        "git_commit": git_commit(),
+        "git_commit": commit,
         "torch": torch.__version__,
         "device": config.device,
         "config": asdict(config),
