@@ -56,7 +56,7 @@ class RasterMaps:
 
     def __call__(self, world: VectorWorld, rows: np.ndarray) -> RadioMap:
         if not self.jam:
-            return self.raster(None)
+            return RasterMap(self.scenario, [self.raster(None)], np.zeros(rows.size, np.int64))
         env = rows // world.num_uavs
         jammers = [(world.jammer_x[e], world.jammer_y[e], world.jammer_power[e],
                     world.jammer_height[e]) for e in range(world.num_envs)]
@@ -64,7 +64,7 @@ class RasterMaps:
         position = {key: index for index, key in enumerate(keys)}
         rasters = [self.raster(JammerParams(*key)) for key in keys]
         which = np.array([position[jammers[e]] for e in env], dtype=np.int64)
-        return RasterMap(rasters, which)
+        return RasterMap(self.scenario, rasters, which)
 
 
 def perfect_maps(scenario: Scenario) -> RasterMaps:

@@ -31,12 +31,13 @@ from safetensors.numpy import save_file as save_arrays
 from cloud_service.rollout import (
     LookaheadController,
     OrcaController,
+    RasterMaps,
     fleet_observation,
     outcome_rates,
     perfect_maps,
     run_episodes,
 )
-from shared.features import joint_state_size, observation_state
+from shared.features import METHODS, MethodOptions, joint_state_size, observation_state
 from shared.networks import ValueNetwork, from_bytes, save_network, to_bytes
 from shared.outcomes import Outcome
 from shared.paper import TABLE_I_JAMMERS
@@ -56,6 +57,7 @@ class TrainConfig:
     uavs: int | None = None
     seed: int = 0
     device: str = "cpu"
+    method: str = "paper"  # a key of shared.features.METHODS
     threads: int = 1  # torch threads: on 2 cores one thread beats two fighting the world
     batch_size: int = 200  # paper
     learning_rate: float = 1e-3  # paper
@@ -205,6 +207,8 @@ def fly(
     scenario: Scenario,
     world: VectorWorld,
     controller,
+    maps: RasterMaps,
+    options: MethodOptions,
     seed: int,
     first_episode: int,
     episodes: int,
@@ -217,7 +221,7 @@ def fly(
     period = scenario.training.jammer_change_every_episodes
     envs = world.num_envs
     recorder = TrajectoryRecorder(envs, world.num_uavs, world.step_limit,
-                                  joint_state_size(scenario))
+                                  joint_state_size(scenario, options))
     slot_episode = np.full(envs, -1)
     returns = np.zeros((envs, world.num_uavs))
     next_episode = first_episode
@@ -238,12 +242,15 @@ def fly(
         running = slot_episode >= 0
         live = world.active & running[:, None]
         rows = np.flatnonzero(live.ravel())
-        states = observation_state(fleet_observation(world).select(rows), scenario)
+        states = observation_state(fleet_observation(world).select(rows), scenario, options,
+                                   maps(world, rows) if options.route_distance else None)
         speed, heading = controller.act(world)
         result = world.step(speed, heading)
         decisions += rows.size
-        recorder.record(states, rows, result.reward)
-        returns += result.reward
+        lost = result.finished & (world.status == Outcome.DISCONNECTION)
+        reward = result.reward + options.disconnection_reward * lost
+        recorder.record(states, rows, reward)
+        returns += reward
         on_missions([recorder.take(e, u) for e, u in zip(*np.nonzero(result.finished),
                                                           strict=True)])
         for env in np.flatnonzero(result.env_done & running):
@@ -352,9 +359,11 @@ def train(
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng([config.seed, 1])
-    size = joint_state_size(scenario)
-    net = ValueNetwork(size, scenario.policy.value_scale).to(device)
-    target = ValueNetwork(size, scenario.policy.value_scale).to(device)
+    options = METHODS[config.method]
+    size = joint_state_size(scenario, options)
+    net = ValueNetwork(size, scenario.policy.value_scale, options._asdict()).to(device)
+    target = ValueNetwork(size, scenario.policy.value_scale, options._asdict()).to(device)
+    maps = perfect_maps(scenario)
     memory = ReplayMemory(config.capacity(uavs), size)
     checkpoint = Checkpoint(out)
     log_path = out / "train_log.csv"
@@ -372,7 +381,7 @@ def train(
     else:
         started = time.perf_counter()
         report({"phase": "orca", "episodes": config.orca_episodes})
-        states, values = orca_pairs(scenario, config, uavs)
+        states, values = orca_pairs(scenario, config, uavs, maps, options)
         mse = fit_value_net(net, states, values, config.orca_epochs, config, rng)
         memory.push(states, values)
         orca_info = {"episodes": config.orca_episodes, "pairs": int(len(values)),
@@ -385,7 +394,7 @@ def train(
             csv.writer(handle).writerow(LOG_FIELDS)
 
     policy = LookaheadPolicy(scenario, net, config.device)
-    controller = LookaheadController(policy, perfect_maps(scenario), rng=rng)
+    controller = LookaheadController(policy, maps, rng=rng)
     world = VectorWorld(scenario, config.envs, uavs)
     gamma = scenario.policy.gamma
     decay_episodes = max(1, int(config.episodes * config.epsilon_decay_share))
@@ -435,8 +444,8 @@ def train(
         while done < config.episodes:
             chunk = min(config.checkpoint_every_episodes, config.episodes - done)
             chunk_start = time.perf_counter()
-            decisions += fly(scenario, world, controller, config.seed, next_episode, chunk,
-                             on_missions, on_episode)
+            decisions += fly(scenario, world, controller, maps, options, config.seed,
+                             next_episode, chunk, on_missions, on_episode)
             td_seconds += time.perf_counter() - chunk_start
             next_episode += chunk
             log_handle.flush()
@@ -479,7 +488,7 @@ def train(
 
 
 def orca_pairs(
-    scenario: Scenario, config: TrainConfig, uavs: int
+    scenario: Scenario, config: TrainConfig, uavs: int, maps: RasterMaps, options: MethodOptions
 ) -> tuple[np.ndarray, np.ndarray]:
     """State-value pairs D from ORCA trajectories: discounted returns of each mission."""
     gamma = scenario.policy.gamma
@@ -494,7 +503,7 @@ def orca_pairs(
 
     world = VectorWorld(scenario, config.envs, uavs)
     # Offset seeds so ORCA flies other missions than TD training's first episodes.
-    fly(scenario, world, OrcaController(scenario), config.seed + 1_000_003, 0,
+    fly(scenario, world, OrcaController(scenario), maps, options, config.seed + 1_000_003, 0,
         config.orca_episodes, on_missions, lambda stats: None)
     return np.concatenate(states), np.concatenate(values).astype(np.float32)
 

@@ -176,7 +176,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         run_episodes,
     )
     from jamnav.progress import ProgressBar
-    from shared.features import joint_state_size
+    from shared.features import MethodOptions, joint_state_size
     from shared.networks import WeightsError, load_network
     from shared.outcomes import Outcome
     from shared.paper import JammerSetting
@@ -191,11 +191,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
     setting = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
     torch.set_num_threads(1)
     if args.method in ("perfect", "outdated"):
-        expected = {"kind": "value", "input_size": joint_state_size(scenario)}
         try:
-            network, _ = load_network(Path(args.model), expected)
+            network, _ = load_network(Path(args.model), {"kind": "value"})
         except WeightsError as exc:
             raise UsageError(f"--model: {exc}") from None
+        wanted = joint_state_size(scenario, MethodOptions.from_dict(network.method))
+        if network.input_size != wanted:
+            raise UsageError(f"--model: built for {network.input_size} inputs, this scenario "
+                             f"gives {wanted}")
         maps = perfect_maps(scenario) if args.method == "perfect" else outdated_maps(scenario)
         controller = LookaheadController(LookaheadPolicy(scenario, network), maps)
     elif args.method == "orca":
@@ -247,7 +250,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         if not torch.cuda.is_available():
             raise UsageError(f"--device {args.device}: CUDA is not available on this machine")
     config = TrainConfig(episodes=args.episodes, envs=args.envs, uavs=args.uavs,
-                         seed=args.seed, device=args.device)
+                         seed=args.seed, device=args.device, method=args.method)
     out = Path(args.out)
     bar = ProgressBar("train", args.episodes)
 
@@ -327,6 +330,11 @@ def build_parser() -> argparse.ArgumentParser:
     training.add_argument("--out", default="runs/train", metavar="DIR")
     training.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint")
     training.add_argument("--device", default="cpu", help="cpu (default) or cuda")
+    training.add_argument(
+        "--method", choices=("paper", "extended"), default="paper",
+        help="paper: the paper's joint state; extended: adds disconnection memory and the "
+             "route distance over the map, and penalizes a lost mission",
+    )
     training.set_defaults(handler=cmd_train)
     return parser
 

@@ -8,6 +8,7 @@ does not depend on the choice of coordinates.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -22,9 +23,29 @@ OTHER_FEATURES = ("p_x", "p_y", "v_x", "v_y", "distance", "azimuth")
 _ABSENT_DISTANCE = 1000.0
 
 
-def joint_state_size(scenario: Scenario) -> int:
-    memory = 1 if scenario.policy.disconnection_memory else 0
-    return len(OWN_FEATURES) + len(OTHER_FEATURES) * scenario.policy.observed_uavs + 1 + memory
+class MethodOptions(NamedTuple):
+    """What a value network reads beyond the paper's joint state, and how its lookahead
+    scores a lost mission. The defaults are the paper's method; they travel in the network's
+    safetensors metadata so a network is always run the way it was trained."""
+
+    disconnection_memory: bool = False  # consecutive steps below T_s, as a feature
+    route_distance: bool = False  # distance along the map's cheapest connected route
+    disconnection_reward: float = 0.0  # added when a mission ends by disconnection
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None) -> MethodOptions:
+        return cls(**(data or {}))
+
+
+PAPER_METHOD = MethodOptions()
+EXTENDED_METHOD = MethodOptions(disconnection_memory=True, route_distance=True,
+                                disconnection_reward=-1.0)
+METHODS = {"paper": PAPER_METHOD, "extended": EXTENDED_METHOD}
+
+
+def joint_state_size(scenario: Scenario, options: MethodOptions = PAPER_METHOD) -> int:
+    extra = int(options.disconnection_memory) + int(options.route_distance)
+    return len(OWN_FEATURES) + len(OTHER_FEATURES) * scenario.policy.observed_uavs + 1 + extra
 
 
 @dataclass
@@ -122,6 +143,7 @@ def joint_state(
     others_present: np.ndarray,
     observed_uavs: int,
     below_steps: np.ndarray | None = None,
+    route_distance: np.ndarray | None = None,
 ) -> np.ndarray:
     """Joint state features, float32, shape (..., F).
 
@@ -136,8 +158,9 @@ def joint_state(
     safe = np.where(goal_distance > 0, goal_distance, 1.0)
     cos = np.where(goal_distance > 0, to_goal[..., 0] / safe, 1.0)
     sin = np.where(goal_distance > 0, to_goal[..., 1] / safe, 0.0)
-    memory = below_steps is not None
-    size = len(OWN_FEATURES) + len(OTHER_FEATURES) * observed_uavs + 1 + memory
+    extras = [column for column in (below_steps, route_distance) if column is not None]
+    level_column = len(OWN_FEATURES) + len(OTHER_FEATURES) * observed_uavs
+    size = level_column + 1 + len(extras)
     out = np.zeros(batch + (size,), dtype=np.float32)
     vx, vy = velocity[..., 0], velocity[..., 1]
     out[..., 0] = vx * cos + vy * sin
@@ -172,16 +195,28 @@ def joint_state(
         block[..., 3] = np.where(present, ovy * cos - ovx * sin, 0.0)
         block[..., 4] = np.hypot(px, py)
         block[..., 5] = np.arctan2(py, px)
-    out[..., size - 1 - memory] = level
-    if memory:
-        # How long the UAV has been disconnected: tells a harmless gap from a fatal one.
-        out[..., size - 1] = below_steps
+    out[..., level_column] = level
+    # Extended method: how long the UAV has been disconnected (tells a harmless gap from a
+    # fatal one) and how far the destination is along the map's connected route.
+    for offset, column in enumerate(extras, start=1):
+        out[..., level_column + offset] = column
     return out
 
 
-def observation_state(observation: Observation, scenario: Scenario) -> np.ndarray:
-    """Joint state of each UAV as observed now: (N, F)."""
+def observation_state(
+    observation: Observation,
+    scenario: Scenario,
+    options: MethodOptions = PAPER_METHOD,
+    radio_map: Any = None,
+) -> np.ndarray:
+    """Joint state of each UAV as observed now: (N, F). The extended method's route
+    distance needs the UAV's radio map."""
     observed_uavs = scenario.policy.observed_uavs
+    route = None
+    if options.route_distance:
+        route = radio_map.route_distance(
+            observation.position[:, None, :], observation.destination
+        )[:, 0]
     observation = observation.nearest_neighbours(observed_uavs)
     return joint_state(
         observation.position,
@@ -195,5 +230,6 @@ def observation_state(observation: Observation, scenario: Scenario) -> np.ndarra
         observation.others_velocity,
         observation.others_present,
         observed_uavs,
-        observation.below_steps if scenario.policy.disconnection_memory else None,
+        observation.below_steps if options.disconnection_memory else None,
+        route,
     )

@@ -58,10 +58,12 @@ def _mlp(inputs: int, hidden: tuple[int, ...], outputs: int) -> nn.Sequential:
 class ValueNetwork(nn.Module):
     kind = "value"
 
-    def __init__(self, input_size: int, value_scale: float):
+    def __init__(self, input_size: int, value_scale: float, method: dict | None = None):
         super().__init__()
         self.input_size = input_size
         self.value_scale = value_scale
+        # How the network's inputs are built and its lookahead scored (MethodOptions).
+        self.method = dict(method or {})
         self.standardize = Standardize(input_size)
         self.body = _mlp(input_size, VALUE_HIDDEN, 1)
 
@@ -69,7 +71,8 @@ class ValueNetwork(nn.Module):
         return self.value_scale * torch.tanh(self.body(self.standardize(state))).squeeze(-1)
 
     def architecture(self) -> dict[str, Any]:
-        return {"kind": self.kind, "input_size": self.input_size, "value_scale": self.value_scale}
+        return {"kind": self.kind, "input_size": self.input_size,
+                "value_scale": self.value_scale, "method": self.method}
 
 
 class SinrMapNetwork(nn.Module):
@@ -92,7 +95,8 @@ class SinrMapNetwork(nn.Module):
 def build_network(architecture: dict[str, Any]) -> nn.Module:
     try:
         if architecture["kind"] == ValueNetwork.kind:
-            return ValueNetwork(int(architecture["input_size"]), float(architecture["value_scale"]))
+            return ValueNetwork(int(architecture["input_size"]),
+                                float(architecture["value_scale"]), architecture.get("method"))
         if architecture["kind"] == SinrMapNetwork.kind:
             return SinrMapNetwork(int(architecture["input_size"]), int(architecture["levels"]))
     except (KeyError, TypeError, ValueError) as exc:

@@ -15,11 +15,12 @@ from typing import NamedTuple, Protocol
 import numpy as np
 import torch
 
-from shared.features import Observation, joint_state
+from shared.features import MethodOptions, Observation, joint_state
 from shared.kinematics import ActionSet, closest_approach, velocity_of
 from shared.networks import ValueNetwork
 from shared.radio import JammerParams, RadioModel
 from shared.rewards import RewardModel, smallest_gaps
+from shared.routes import RouteGrid
 from shared.scenario import Scenario
 
 
@@ -28,6 +29,10 @@ class RadioMap(Protocol):
 
     def level_at(self, xy: np.ndarray) -> np.ndarray:
         """Levels at positions ``xy`` of shape (N, A, 2), one row per UAV: (N, A)."""
+
+    def route_distance(self, xy: np.ndarray, destination: np.ndarray) -> np.ndarray:
+        """Distance along the map's connected route from ``xy`` (N, ..., 2) to each row's
+        destination (N, 2); read only by the extended method."""
 
 
 class TrueMap:
@@ -49,6 +54,7 @@ class LevelRaster:
     def __init__(self, levels: np.ndarray, x0: float, y0: float, spacing: float):
         self.levels = np.ascontiguousarray(levels, dtype=np.int8)
         self.x0, self.y0, self.spacing = x0, y0, spacing
+        self._routes: RouteGrid | None = None
 
     @classmethod
     def sample(
@@ -73,11 +79,22 @@ class LevelRaster:
     def level_at(self, xy: np.ndarray) -> np.ndarray:
         return self.levels[self.indices(xy)]
 
+    def routes(self, scenario: Scenario) -> RouteGrid:
+        """The routing grid of this map (built once): levels read every route_cell_m."""
+        if self._routes is None:
+            stride = max(1, round(scenario.policy.route_cell_m / self.spacing))
+            covered = self.levels[::stride, ::stride] > 0
+            self._routes = RouteGrid(covered, self.x0, self.y0, self.spacing * stride,
+                                     scenario.policy.route_uncovered_cost)
+        return self._routes
+
 
 class RasterMap:
     """Several rasters of one shape, each UAV row reading its own (per-environment jammers)."""
 
-    def __init__(self, rasters: list[LevelRaster], which: np.ndarray):
+    def __init__(self, scenario: Scenario, rasters: list[LevelRaster], which: np.ndarray):
+        self.scenario = scenario
+        self.rasters = rasters
         self.first = rasters[0]
         self.stack = np.stack([raster.levels for raster in rasters])
         self.which = which
@@ -86,6 +103,15 @@ class RasterMap:
         row, col = self.first.indices(xy)
         which = self.which.reshape(self.which.shape + (1,) * (xy.ndim - 2))
         return self.stack[which, row, col]
+
+    def route_distance(self, xy: np.ndarray, destination: np.ndarray) -> np.ndarray:
+        """Route distance (N, ...) from ``xy`` (N, ..., 2) to each row's destination."""
+        out = np.empty(xy.shape[:-1], dtype=np.float64)
+        for index, raster in enumerate(self.rasters):
+            rows = np.flatnonzero(self.which == index)
+            if rows.size:
+                out[rows] = raster.routes(self.scenario).distance(xy[rows], destination[rows])
+        return out
 
 
 class Decision(NamedTuple):
@@ -104,7 +130,7 @@ class LookaheadPolicy:
         self.gamma = scenario.policy.gamma
         self.observed_uavs = scenario.policy.observed_uavs
         self.tolerance = scenario.uav.arrival_tolerance_m
-        self.memory = scenario.policy.disconnection_memory
+        self.options = MethodOptions.from_dict(value_net.method)
         self.disconnection_limit = scenario.timing.disconnection_limit_steps
         self.device = torch.device(device)
         self.value_net = value_net.to(self.device).eval()
@@ -158,16 +184,18 @@ class LookaheadPolicy:
             observation.others_velocity[:, None],
             observation.others_present[:, None],
             self.observed_uavs,
-            below if self.memory else None,
+            below if self.options.disconnection_memory else None,
+            radio_map.route_distance(next_position, observation.destination)
+            if self.options.route_distance else None,
         )
         next_value = self.values(states.reshape(-1, states.shape[-1])).reshape(n, -1)
         # Arrival and collision end the mission: nothing follows them. A UAV that counts its
         # time below T_s also knows which steps would end it by disconnection.
         terminal = arrived | (gap <= 0)
-        if self.memory:
+        if self.options.disconnection_memory:
             lost = ~arrived & (gap > 0) & (below > self.disconnection_limit)
             terminal |= lost
-            reward = reward + self.rewards.disconnection * lost
+            reward = reward + self.options.disconnection_reward * lost
         score = reward + self.gamma * np.where(terminal, 0.0, next_value)
         chosen = score.argmax(axis=1)
         value = score[np.arange(n), chosen]

@@ -15,7 +15,6 @@ class RewardModel:
         self.discomfort = rewards.discomfort_distance_m
         self.arrival = rewards.arrival
         self.step = rewards.step
-        self.disconnection = rewards.disconnection
         self.check_every = scenario.connectivity_check_steps
         # R_s by quantized level: level 0 is below T_s, level 1 the marginal band (if the
         # scenario has one), higher levels are connected.

@@ -124,7 +124,6 @@ class Rewards(_Strict):
     discomfort_distance_m: NonNegative
     arrival: Finite
     step: Finite
-    disconnection: Finite = 0.0
     connectivity_check_every_steps: int | None = Field(default=None, ge=1)
 
 
@@ -142,7 +141,8 @@ class Policy(_Strict):
     nearby_gbs: int = Field(ge=1)
     value_scale: Positive
     orca_time_horizon_s: Positive
-    disconnection_memory: bool = False
+    route_cell_m: Positive
+    route_uncovered_cost: Annotated[float, Field(ge=1, allow_inf_nan=False)]
 
 
 class Training(_Strict):

@@ -186,8 +186,7 @@ class VectorWorld:
         check_now = self.rewards.is_check_step(self.steps)[:, None]
         self.steps += 1
         disconnected = active & ~collided & ~arrived & (below > self.disconnection_limit)
-        reward = self.rewards.total(reading.level, check_now, gap, arrived)
-        reward = np.where(active, reward + self.rewards.disconnection * disconnected, 0.0)
+        reward = np.where(active, self.rewards.total(reading.level, check_now, gap, arrived), 0.0)
         timed_out = (
             active & ~collided & ~arrived & ~disconnected & (self.steps >= self.step_limit)[:, None]
         )
