@@ -31,6 +31,9 @@ class MethodOptions(NamedTuple):
     disconnection_memory: bool = False  # consecutive steps below T_s, as a feature
     route_distance: bool = False  # distance along the map's cheapest connected route
     disconnection_reward: float = 0.0  # added when a mission ends by disconnection
+    # The lookahead treats another UAV closer than r_i + r_j + margin as a collision: the
+    # others may turn into the predicted path within the step.
+    collision_margin_m: float = 0.0
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None) -> MethodOptions:
@@ -39,7 +42,7 @@ class MethodOptions(NamedTuple):
 
 PAPER_METHOD = MethodOptions()
 EXTENDED_METHOD = MethodOptions(disconnection_memory=True, route_distance=True,
-                                disconnection_reward=-1.0)
+                                disconnection_reward=-1.0, collision_margin_m=1.5)
 METHODS = {"paper": PAPER_METHOD, "extended": EXTENDED_METHOD}
 
 

@@ -166,7 +166,7 @@ class LookaheadPolicy:
             observation.others_radius[:, None],
             observation.others_present[:, None],
             self.dt,
-        )
+        ) - self.options.collision_margin_m
         level = radio_map.level_at(next_position)
         below = np.where(level == 0, observation.below_steps[:, None] + 1, 0)
         check_now = self.rewards.is_check_step(observation.step)[:, None]
