@@ -19,6 +19,8 @@ import numpy as np
 from shared.radio import RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario
 
+INITIAL_SINR_MAP = Path(__file__).resolve().parent.parent / "models/sinr_map_no_jammer.safetensors"
+
 
 class UsageError(Exception):
     """A problem with the user's input, reported as one line."""
@@ -124,7 +126,21 @@ def cmd_scenario_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _load_sinr_map(path: str, scenario: Scenario):
+    from shared.measurements import MeasurementSpec
+    from shared.networks import WeightsError, load_network
+
+    spec = MeasurementSpec.of(scenario)
+    expected = {"kind": "sinr_map", "input_size": spec.feature_size, "levels": spec.level_count}
+    try:
+        return load_network(Path(path), expected)
+    except WeightsError as exc:
+        raise UsageError(f"--model: {exc}") from None
+
+
 def cmd_sinr(args: argparse.Namespace) -> int:
+    if args.model:
+        return _sinr_from_model(args)
     scenario = scenario_with_jammer(args)
     points = _read_points(args)
     radio = RadioModel(scenario)
@@ -140,6 +156,27 @@ def cmd_sinr(args: argparse.Namespace) -> int:
         for (x, y), db, level, serving in zip(
             points, reading.sinr_db, reading.level, reading.serving_gbs, strict=True
         )
+    ]
+    print(json.dumps(rows))
+    return 0
+
+
+def _sinr_from_model(args: argparse.Namespace) -> int:
+    """Levels predicted by a SINR-map network, in the shape of the true-map query; the
+    network predicts levels only, so sinr_db and serving_gbs are null."""
+    from cloud_service.sinr_mapping import predict_levels
+    from shared.measurements import scenario_features
+
+    if args.jammer or args.no_jammer:
+        raise UsageError("--model: the network is the map of the jammer it was trained for; "
+                         "--jammer/--no-jammer do not apply")
+    scenario = load_scenario(args.scenario)
+    network, _ = _load_sinr_map(args.model, scenario)
+    points = _read_points(args)
+    levels = predict_levels(network, scenario_features(scenario, points))
+    rows = [
+        {"x": float(x), "y": float(y), "sinr_db": None, "level": int(level), "serving_gbs": None}
+        for (x, y), level in zip(points, levels, strict=True)
     ]
     print(json.dumps(rows))
     return 0
@@ -276,6 +313,70 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _one_torch_thread() -> None:
+    """The SINR network is tiny (batches of 200 through 32 units): a second thread only adds
+    hand-offs, and on a 2-core machine makes training several times slower."""
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def cmd_fit_sinr(args: argparse.Namespace) -> int:
+    from cloud_service.sinr_mapping import fit_sinr_map
+    from cloud_service.value_training import git_commit
+    from jamnav.progress import ProgressBar
+    from shared.networks import save_network
+
+    _one_torch_thread()
+    scenario = scenario_with_jammer(args)
+    if args.samples < 100:
+        raise UsageError("--samples must be at least 100")
+    if args.steps < 1:
+        raise UsageError("--steps must be at least 1")
+    out = Path(args.out)
+    if out.suffix != ".safetensors":
+        raise UsageError(f"--out {args.out}: name the weights file *.safetensors")
+    bar = ProgressBar("fit-sinr", args.steps)
+
+    def progress(step: int, accuracy: float) -> None:
+        bar.update(step, f"held-out accuracy {accuracy:.1%}", force=step == args.steps)
+
+    network, figures = fit_sinr_map(scenario, RadioModel.jammer_of(scenario), args.samples,
+                                    args.steps, args.seed, progress)
+    command = "jamnav " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["fit-sinr"] else (
+        "jamnav fit-sinr")
+    card = {"command": command, **figures, "git_commit": git_commit()}
+    card["sha256"] = save_network(network, out, card)
+    print(json.dumps({"out": str(out), **card}, indent=2))
+    return 0
+
+
+def cmd_online_map(args: argparse.Namespace) -> int:
+    from cloud_service.online_map_sim import Schedule, save_online_map_figure, simulate_online_map
+
+    _one_torch_thread()
+    scenario = load_scenario(args.scenario)
+    out = Path(args.out)
+    if out.suffix.lower() != ".png":
+        raise UsageError(f"--out {args.out}: the figure is written as PNG; name it *.png")
+    if not 1 <= args.uavs <= 10_000:
+        raise UsageError("--uavs must be between 1 and 10000")
+    if args.period <= 0:
+        raise UsageError("--period must be positive")
+    network, card = _load_sinr_map(args.model, scenario)
+    if not isinstance(card.get("accuracy"), int | float):
+        raise UsageError(f"--model {args.model}: its card states no accuracy")
+    schedule = Schedule.table_i(first_change=args.period / 2, period=args.period)
+    timeline = simulate_online_map(scenario, network, float(card["accuracy"]), schedule,
+                                   schedule.starts[-1] + args.period, uavs=args.uavs,
+                                   seed=args.seed)
+    save_online_map_figure(timeline, out)
+    published = [e for e in timeline["events"] if e["type"] == "sinr_weights_published"]
+    print(f"wrote {out} and {out.with_suffix('.json')} "
+          f"({len(published)} maps published)", file=sys.stderr)
+    return 0
+
+
 # -- parser -----------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
@@ -297,6 +398,10 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--at", nargs="+", metavar="X,Y", help="points as X,Y")
     where.add_argument(
         "--points-json", metavar="FILE|-", help='JSON list of [x, y] or {"x", "y"}; - = stdin'
+    )
+    sinr.add_argument(
+        "--model", metavar="PATH",
+        help="predict levels with a SINR-map network (safetensors + JSON card) instead",
     )
     sinr.set_defaults(handler=cmd_sinr)
 
@@ -336,6 +441,29 @@ def build_parser() -> argparse.ArgumentParser:
              "route distance over the map, and penalizes a lost mission",
     )
     training.set_defaults(handler=cmd_train)
+
+    fit = commands.add_parser("fit-sinr", help="train a SINR map from simulated measurements")
+    _add_scenario(fit)
+    _add_jammer(fit)
+    fit.add_argument("--samples", type=int, default=30000,
+                     help="simulated measurements, uniform over the area")
+    fit.add_argument("--steps", type=int, default=10000, help="mini-batches of 200")
+    fit.add_argument("--seed", type=int, default=0)
+    fit.add_argument("--out", required=True, metavar="FILE.safetensors")
+    fit.set_defaults(handler=cmd_fit_sinr)
+
+    online = commands.add_parser(
+        "online-map", help="accuracy of the online SINR map across jammer changes (Fig. 2b)"
+    )
+    _add_scenario(online)
+    online.add_argument("--model", default=str(INITIAL_SINR_MAP), metavar="PATH",
+                        help="the initial map (default: models/sinr_map_no_jammer.safetensors)")
+    online.add_argument("--uavs", type=int, default=100, help="UAVs uploading every step")
+    online.add_argument("--period", type=float, default=120.0,
+                        help="simulated seconds per jammer setting")
+    online.add_argument("--seed", type=int, default=0)
+    online.add_argument("--out", required=True, metavar="FILE.png")
+    online.set_defaults(handler=cmd_online_map)
     return parser
 
 

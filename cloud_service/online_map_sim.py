@@ -1,0 +1,207 @@
+"""Simulated uploads for the online SINR map, and the paper's Fig. 2b from them.
+
+A fleet of UAVs crosses the area on straight legs between waypoints drawn uniformly over it,
+at the scenario's top speed, each measuring and uploading once per time step. This is not a
+mission simulation: it spreads measurements over the map the way through-traffic does, which
+is what the cloud's detector and retraining see. The jammer follows a schedule; everything
+runs in simulated time through ``OnlineSinrMapper`` in synchronous mode, so a seed gives one
+timeline.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cloud_service.sinr_mapping import (
+    ChangeDetector,
+    OnlineSinrMapper,
+    RetrainConfig,
+    measurements_at,
+    predict_levels,
+)
+from cloud_service.sinr_memory import SinrMemory
+from shared.measurements import MeasurementBatch, MeasurementSpec, scenario_features
+from shared.networks import SinrMapNetwork
+from shared.paper import TABLE_I_JAMMERS, JammerSetting
+from shared.radio import JammerParams, RadioModel
+from shared.scenario import Scenario
+
+DEFAULT_UAVS = 100  # uploads per step: a window of 200 is two steps of the whole fleet
+
+
+class Fleet:
+    """UAVs on straight legs between uniform waypoints, each measuring once per time step."""
+
+    def __init__(self, scenario: Scenario, uavs: int, rng: np.random.Generator):
+        self.scenario = scenario
+        self.radio = RadioModel(scenario)
+        self.rng = rng
+        self.step_length = scenario.uav.max_speed_mps * scenario.timing.step_s
+        self.sources = [f"uav-{i}" for i in range(uavs)]
+        self.position = self._draw(uavs)
+        self.waypoint = self._draw(uavs)
+
+    def _draw(self, n: int) -> np.ndarray:
+        area = self.scenario.area
+        return self.rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max), (n, 2))
+
+    def fly(self) -> None:
+        """One time step along the legs; a UAV that reaches its waypoint gets a new one."""
+        offset = self.waypoint - self.position
+        distance = np.hypot(offset[:, 0], offset[:, 1])
+        arrived = distance <= self.step_length
+        heading = offset / np.maximum(distance, 1e-9)[:, None]
+        self.position = np.where(arrived[:, None], self.waypoint,
+                                 self.position + heading * self.step_length)
+        self.waypoint[arrived] = self._draw(int(arrived.sum()))
+
+    def uploads(self, jammer: JammerParams | None, time: float, step: int) -> MeasurementBatch:
+        """Every UAV's measurement at its current position."""
+        return measurements_at(self.scenario, self.radio, jammer, self.position, self.rng,
+                               time=time, step=step, source=self.sources)
+
+
+def jammer_params(scenario: Scenario, setting: JammerSetting | None) -> JammerParams | None:
+    if setting is None:
+        return None
+    return JammerParams(setting.x, setting.y, setting.power_w, scenario.jammer.height_m)
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """The jammer over simulated time: ``settings[i]`` from ``starts[i]`` on."""
+
+    starts: tuple[float, ...]
+    settings: tuple[JammerSetting | None, ...]
+
+    @classmethod
+    def table_i(cls, first_change: float = 60.0, period: float = 120.0) -> Schedule:
+        """No jammer, then Table I's four settings in turn, each for ``period`` seconds."""
+        starts = (0.0,) + tuple(first_change + i * period for i in range(len(TABLE_I_JAMMERS)))
+        return cls(starts, (None, *TABLE_I_JAMMERS))
+
+    def at(self, t: float) -> JammerSetting | None:
+        index = int(np.searchsorted(self.starts, t, side="right")) - 1
+        return self.settings[max(index, 0)]
+
+    def label(self, setting: JammerSetting | None) -> str:
+        return "no jammer" if setting is None else setting.label
+
+
+def simulate_online_map(
+    scenario: Scenario,
+    network: SinrMapNetwork,
+    accuracy: float,
+    schedule: Schedule,
+    duration: float,
+    *,
+    uavs: int = DEFAULT_UAVS,
+    seed: int = 0,
+    test_points: int = 5000,
+    detector: ChangeDetector | None = None,
+    retrain: RetrainConfig | None = None,
+) -> dict[str, Any]:
+    """Fly the fleet for ``duration`` simulated seconds through a synchronous mapper.
+
+    Every step the true accuracy of the network in service is measured on ``test_points``
+    fixed uniform positions under the jammer of the moment. Returns the timeline (JSON-ready).
+    Retraining runs without its wall-clock budget unless ``retrain`` sets one, so the
+    timeline does not depend on how busy the machine is.
+    """
+    rng = np.random.default_rng(seed)
+    dt = scenario.timing.step_s
+    now = [0.0]
+    memory = SinrMemory(":memory:", MeasurementSpec.of(scenario))
+    mapper = OnlineSinrMapper(scenario, memory, network, accuracy, detector=detector,
+                              retrain=retrain or RetrainConfig(max_seconds=None),
+                              clock=lambda: now[0], background=False, seed=seed)
+    area = scenario.area
+    test_xy = np.random.default_rng(seed + 1).uniform(
+        (area.x_min, area.y_min), (area.x_max, area.y_max), size=(test_points, 2))
+    test_features = scenario_features(scenario, test_xy)
+    radio = RadioModel(scenario)
+    truth = {setting: radio.evaluate(test_xy, jammer_params(scenario, setting)).level
+             for setting in set(schedule.settings)}
+    fleet = Fleet(scenario, uavs, rng)
+    times, accuracies, versions, windows = [], [], [], []
+    predicted, predicted_version = None, None
+    for step in range(int(round(duration / dt))):
+        now[0] = step * dt
+        setting = schedule.at(now[0])
+        fleet.fly()
+        report = mapper.ingest(fleet.uploads(jammer_params(scenario, setting), now[0], step))
+        windows += [{"t": check.end, "accuracy": check.accuracy, "cusum": check.cusum}
+                    for check in report.windows]
+        if predicted_version != mapper.version:
+            predicted = predict_levels(mapper.current_network(), test_features)
+            predicted_version = mapper.version
+        times.append(now[0])
+        accuracies.append(float((predicted == truth[setting]).mean()))
+        versions.append(mapper.version)
+    memory.close()
+    return {
+        "scenario": scenario.name,
+        "seed": seed,
+        "uavs": uavs,
+        "step_s": dt,
+        "test_points": test_points,
+        "jammer_changes": [{"t": start, "jammer": schedule.label(setting)}
+                           for start, setting in zip(schedule.starts, schedule.settings,
+                                                     strict=True)],
+        "detector": {"window": mapper.detector.window, "allowance": mapper.detector.allowance,
+                     "threshold": mapper.detector.threshold},
+        "t": times,
+        "accuracy": accuracies,
+        "version": versions,
+        "windows": windows,
+        "events": mapper.events,
+    }
+
+
+def save_online_map_figure(timeline: dict[str, Any], out: Path) -> None:
+    """Fig. 2b: accuracy of the online map over time; writes ``out`` (PNG) and the timeline
+    as JSON beside it."""
+    # Imported here: benchmarks and tests run the simulation without drawing anything.
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 4.2))
+    ax.plot(timeline["t"], np.array(timeline["accuracy"]) * 100, color="tab:blue", lw=1.4,
+            label="online map, fresh positions")
+    windows = timeline["windows"]
+    ax.plot([w["t"] for w in windows], [w["accuracy"] * 100 for w in windows], ".",
+            color="tab:gray", ms=2.5, alpha=0.6, label="monitor, window of uploads")
+    for change in timeline["jammer_changes"][1:]:
+        ax.axvline(change["t"], color="tab:red", ls="--", lw=0.9)
+        ax.annotate(change["jammer"], (change["t"], 0.02), xycoords=("data", "axes fraction"),
+                    rotation=90, fontsize=7, color="tab:red", ha="right", va="bottom")
+    _mark(ax, timeline, "change_detected", "v", "tab:orange", "change detected")
+    _mark(ax, timeline, "sinr_weights_published", "^", "tab:green", "new weights published")
+    ax.set_xlabel("simulated time (s)")
+    ax.set_ylabel("level accuracy (%)")
+    ax.set_ylim(min(70.0, min(timeline["accuracy"]) * 100 - 2), 100.5)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=7)
+    ax.set_title(f"Online SINR map, {timeline['uavs']} UAVs uploading every "
+                 f"{timeline['step_s']:g} s (seed {timeline['seed']})", fontsize=10)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    out.with_suffix(".json").write_text(json.dumps(timeline, indent=1) + "\n", encoding="utf-8")
+
+
+def _mark(ax, timeline: dict[str, Any], kind: str, marker: str, colour: str, label: str) -> None:
+    times = np.array(timeline["t"])
+    accuracy = np.array(timeline["accuracy"]) * 100
+    at = [event["t"] for event in timeline["events"] if event["type"] == kind]
+    if at:
+        index = np.clip(np.searchsorted(times, at), 0, len(times) - 1)
+        ax.plot(at, accuracy[index], marker, color=colour, ms=7, ls="none", label=label)

@@ -1,0 +1,186 @@
+"""Replay memory D_w of the online SINR map: the most recent measurements, kept in SQLite.
+
+SQLite in WAL mode, so a restarted cloud finds its memory again and a reader never blocks the
+writer. Rows are numbered in arrival order (``seq``); the memory keeps the ``capacity`` most
+recent arrivals and drops older ones. The upload id is unique: an upload delivered twice is
+stored once (as long as the first copy has not been dropped yet). Measurements that break the
+scenario's rules are refused and counted per reason (see ``MeasurementSpec.screen``); the
+counters persist with the data.
+
+One connection, guarded by a lock, so the bus thread and the retraining worker can share it.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+from collections import Counter
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+import numpy as np
+
+from shared.measurements import Measurement, MeasurementBatch, MeasurementSpec
+
+DEFAULT_CAPACITY = 100_000  # the paper's replay capacity for more than two UAVs
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS measurements (
+    seq INTEGER PRIMARY KEY,
+    id TEXT NOT NULL UNIQUE,
+    source TEXT NOT NULL,
+    step INTEGER NOT NULL,
+    time REAL NOT NULL,
+    level INTEGER NOT NULL,
+    features BLOB NOT NULL
+);
+CREATE INDEX IF NOT EXISTS measurements_time ON measurements(time);
+CREATE TABLE IF NOT EXISTS rejected (reason TEXT PRIMARY KEY, count INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+"""
+_COLUMNS = "id, source, step, time, level, features"
+_LOOKUP_CHUNK = 900  # ids per query: below the 999 variables of SQLite builds before 3.32
+
+Uploads = MeasurementBatch | Iterable[Measurement | Mapping]
+
+
+class SinrMemory:
+    def __init__(self, path: str | Path, spec: MeasurementSpec, capacity: int = DEFAULT_CAPACITY):
+        if capacity < 1:
+            raise ValueError("capacity must be at least 1")
+        self.path = Path(path)
+        self.spec = spec
+        self.capacity = capacity
+        self._lock = threading.Lock()
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._db = sqlite3.connect(self.path, check_same_thread=False)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        # A power cut may lose the last commits but never corrupts the file: fine for a memory
+        # that the fleet refills within seconds, and it keeps commits off the disk's fsync.
+        self._db.execute("PRAGMA synchronous=NORMAL")
+        self._db.executescript(_SCHEMA)
+        self._check_spec()
+
+    def _check_spec(self) -> None:
+        want = {"feature_size": str(self.spec.feature_size),
+                "level_count": str(self.spec.level_count)}
+        with self._db:
+            have = dict(self._db.execute("SELECT key, value FROM meta"))
+            if have and have != want:
+                raise ValueError(f"{self.path}: memory holds measurements of {have}, not {want}")
+            self._db.executemany("INSERT OR IGNORE INTO meta VALUES (?, ?)", want.items())
+
+    # -- writing --------------------------------------------------------------------------------
+    def append(self, uploads: Uploads) -> tuple[int, int]:
+        """Store a batch; returns (accepted, duplicates). Refused rows only bump counters."""
+        stored, duplicates = self.store(uploads)
+        return len(stored), duplicates
+
+    def store(self, uploads: Uploads) -> tuple[MeasurementBatch, int]:
+        """As ``append``, but returns the rows actually stored (new, valid), in order."""
+        if isinstance(uploads, MeasurementBatch):
+            batch, rejected = self.spec.screen(uploads)
+        else:
+            batch, rejected = self.spec.from_records(uploads)
+        with self._lock, self._db:
+            if rejected:
+                self._db.executemany(
+                    "INSERT INTO rejected VALUES (?, ?) "
+                    "ON CONFLICT(reason) DO UPDATE SET count = count + excluded.count",
+                    rejected.items(),
+                )
+            if not len(batch):
+                return batch, 0
+            fresh = self._fresh_rows(batch.ids)
+            new = batch if len(fresh) == len(batch) else batch.take(fresh)
+            self._db.executemany(
+                f"INSERT INTO measurements ({_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?)",
+                zip(
+                    new.ids,
+                    new.sources,
+                    new.steps.tolist(),
+                    new.times.tolist(),
+                    new.levels.tolist(),
+                    [row.tobytes() for row in new.features],
+                    strict=True,
+                ),
+            )
+            self._db.execute(
+                "DELETE FROM measurements WHERE seq <= (SELECT MAX(seq) FROM measurements) - ?",
+                (self.capacity,),
+            )
+        return new, len(batch) - len(new)
+
+    def _fresh_rows(self, ids: list[str]) -> np.ndarray:
+        """Indices of rows whose id is neither stored yet nor repeated earlier in the batch."""
+        seen: set[str] = set()
+        for start in range(0, len(ids), _LOOKUP_CHUNK):
+            chunk = ids[start : start + _LOOKUP_CHUNK]
+            marks = ",".join("?" * len(chunk))
+            seen.update(row[0] for row in self._db.execute(
+                f"SELECT id FROM measurements WHERE id IN ({marks})", chunk))
+        fresh = []
+        for index, upload_id in enumerate(ids):
+            if upload_id not in seen:
+                seen.add(upload_id)
+                fresh.append(index)
+        return np.array(fresh, dtype=np.int64)
+
+    # -- reading --------------------------------------------------------------------------------
+    def count(self) -> int:
+        with self._lock:
+            return self._db.execute("SELECT COUNT(*) FROM measurements").fetchone()[0]
+
+    @property
+    def rejected(self) -> Counter:
+        """Refused measurements per reason, since the file was created."""
+        with self._lock:
+            return Counter(dict(self._db.execute("SELECT reason, count FROM rejected")))
+
+    def since(self, time: float) -> MeasurementBatch:
+        """Stored measurements taken at or after ``time``, in arrival order."""
+        return self._select("WHERE time >= ? ORDER BY seq", (time,))
+
+    def recent(self, n: int) -> MeasurementBatch:
+        """The ``n`` most recent arrivals, oldest first."""
+        batch = self._select("ORDER BY seq DESC LIMIT ?", (max(0, n),))
+        return batch.take(np.arange(len(batch))[::-1])
+
+    def sample(self, rng: np.random.Generator, n: int) -> MeasurementBatch:
+        """``n`` distinct stored measurements drawn uniformly (all of them if fewer)."""
+        with self._lock:
+            low, high = self._db.execute("SELECT MIN(seq), MAX(seq) FROM measurements").fetchone()
+        if low is None:
+            return MeasurementBatch.empty(self.spec.feature_size)
+        # Rows are numbered consecutively (only the oldest are ever deleted), so drawing
+        # numbers in [low, high] draws rows.
+        picked = rng.choice(np.arange(low, high + 1), size=min(n, high - low + 1), replace=False)
+        seqs = ",".join(str(int(s)) for s in picked)
+        return self._select(f"WHERE seq IN ({seqs})", ())
+
+    def _select(self, clause: str, params: tuple) -> MeasurementBatch:
+        with self._lock:
+            rows = self._db.execute(f"SELECT {_COLUMNS} FROM measurements {clause}",
+                                    params).fetchall()
+        if not rows:
+            return MeasurementBatch.empty(self.spec.feature_size)
+        ids, sources, steps, times, levels, blobs = zip(*rows, strict=True)
+        features = np.frombuffer(b"".join(blobs), dtype=np.float32)
+        return MeasurementBatch(
+            ids=list(ids),
+            sources=list(sources),
+            steps=np.array(steps, dtype=np.int64),
+            times=np.array(times, dtype=np.float64),
+            features=features.reshape(len(rows), self.spec.feature_size).copy(),
+            levels=np.array(levels, dtype=np.int64),
+        )
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    def __enter__(self) -> SinrMemory:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

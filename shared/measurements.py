@@ -1,0 +1,227 @@
+"""SINR measurements: the input features of the SINR-mapping network and the upload records.
+
+A UAV's measurement is <positions of its K_n nearest GBSs, SINR level> (paper Sec. III-C).
+``gbs_features`` is the one feature function: training, the agents, the cloud and the
+evaluation all call it, so a map learned anywhere reads the same inputs everywhere.
+
+Uploads travel as ``Measurement`` records; the cloud handles them in bulk as a
+``MeasurementBatch`` of arrays. ``MeasurementSpec.screen`` is the one place where the rules a
+measurement must satisfy (feature length, finite values, known level) are checked.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from shared.scenario import Scenario
+
+PER_GBS_FEATURES = ("dx", "dy", "distance", "elevation", "azimuth")
+# Why a measurement was refused; the replay memory keeps one counter per reason.
+REJECT_REASONS = ("malformed", "wrong_length", "not_finite", "unknown_level")
+
+
+def gbs_features(
+    xy: np.ndarray, gbs_xy: np.ndarray, nearby: int, altitude: float, gbs_height: float
+) -> np.ndarray:
+    """Input of the SINR-mapping network at UAV positions ``xy`` (shape (..., 2)).
+
+    For the ``nearby`` GBSs closest to the UAV, nearest first (ties keep the scenario's
+    order): [dx, dy, horizontal distance, elevation angle, azimuth] of the GBS seen from the
+    UAV, in metres and radians. The frame is north-up (+x east, +y north) and only translated
+    to the UAV, never turned with its heading: the SINR map depends on where the UAV is, not on
+    where it points, so two UAVs at one spot must get one input. Elevation is negative when
+    the GBS is below the UAV; azimuth is counter-clockwise from +x in (-pi, pi].
+
+    Returns float32 of shape (..., 5 * nearby).
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    gbs_xy = np.asarray(gbs_xy, dtype=np.float64)
+    dx = gbs_xy[:, 0] - xy[..., 0, None]
+    dy = gbs_xy[:, 1] - xy[..., 1, None]
+    distance = np.hypot(dx, dy)
+    order = np.argsort(distance, axis=-1, kind="stable")[..., :nearby]
+    dx = np.take_along_axis(dx, order, axis=-1)
+    dy = np.take_along_axis(dy, order, axis=-1)
+    distance = np.take_along_axis(distance, order, axis=-1)
+    elevation = np.arctan2(gbs_height - altitude, distance)
+    azimuth = np.arctan2(dy, dx)
+    features = np.stack([dx, dy, distance, elevation, azimuth], axis=-1)
+    return features.reshape(xy.shape[:-1] + (len(PER_GBS_FEATURES) * nearby,)).astype(np.float32)
+
+
+def scenario_features(scenario: Scenario, xy: np.ndarray) -> np.ndarray:
+    """``gbs_features`` with the scenario's GBS layout, K_n, UAV altitude and GBS height."""
+    return gbs_features(
+        xy,
+        np.asarray(scenario.gbs.positions),
+        scenario.policy.nearby_gbs,
+        scenario.uav.altitude_m,
+        scenario.gbs.height_m,
+    )
+
+
+class Measurement(BaseModel):
+    """One upload as it travels. Its shape rules depend on the scenario: see MeasurementSpec."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    id: str = Field(min_length=1, max_length=200)  # unique per upload: a resend is a duplicate
+    source: str = Field(min_length=1, max_length=200)  # e.g. "uav-3"
+    step: int = Field(ge=0, lt=2**63)
+    time: float = Field(allow_inf_nan=False)  # unix seconds (or simulated seconds)
+    features: list[float]  # gbs_features at the measuring position
+    # Quantized SINR level measured there. Its range depends on the scenario (checked by
+    # MeasurementSpec); the int32 bound only keeps absurd values from overflowing the arrays.
+    level: int = Field(ge=-(2**31), lt=2**31)
+
+
+@dataclass(frozen=True)
+class MeasurementBatch:
+    """Many measurements as arrays, the form memory, monitor and training work on."""
+
+    ids: list[str]
+    sources: list[str]
+    steps: np.ndarray  # (n,) int64
+    times: np.ndarray  # (n,) float64
+    features: np.ndarray  # (n, F) float32
+    levels: np.ndarray  # (n,) int64
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @classmethod
+    def of_arrays(
+        cls,
+        ids: Sequence[str],
+        sources: Sequence[str] | str,
+        steps: np.ndarray | int,
+        times: np.ndarray | float,
+        features: np.ndarray,
+        levels: np.ndarray,
+    ) -> MeasurementBatch:
+        """A batch from arrays; a scalar source, step or time applies to every row."""
+        n = len(ids)
+        with np.errstate(over="ignore"):  # beyond float32 becomes inf, refused as not finite
+            features = np.asarray(features, dtype=np.float32)
+        return cls(
+            ids=list(ids),
+            sources=[sources] * n if isinstance(sources, str) else list(sources),
+            steps=np.broadcast_to(np.asarray(steps, dtype=np.int64), (n,)).copy(),
+            times=np.broadcast_to(np.asarray(times, dtype=np.float64), (n,)).copy(),
+            features=features.reshape(n, -1) if n else features.reshape(0, features.shape[-1]),
+            levels=np.asarray(levels, dtype=np.int64).reshape(n),
+        )
+
+    @classmethod
+    def empty(cls, feature_size: int) -> MeasurementBatch:
+        return cls.of_arrays([], [], 0, 0.0, np.zeros((0, feature_size)), np.zeros(0))
+
+    def take(self, rows: np.ndarray) -> MeasurementBatch:
+        """The rows selected by a boolean mask or an index array, in that order."""
+        index = np.flatnonzero(rows) if np.asarray(rows).dtype == bool else np.asarray(rows)
+        return MeasurementBatch(
+            ids=[self.ids[i] for i in index],
+            sources=[self.sources[i] for i in index],
+            steps=self.steps[index],
+            times=self.times[index],
+            features=self.features[index],
+            levels=self.levels[index],
+        )
+
+    def records(self) -> list[Measurement]:
+        """Validated records, e.g. to send; a row the model refuses raises ValidationError."""
+        return [
+            Measurement(id=i, source=s, step=int(st), time=float(t), features=f, level=int(lv))
+            for i, s, st, t, f, lv in zip(
+                self.ids,
+                self.sources,
+                self.steps,
+                self.times,
+                self.features.tolist(),
+                self.levels,
+                strict=True,
+            )
+        ]
+
+    @staticmethod
+    def concatenate(batches: Sequence[MeasurementBatch]) -> MeasurementBatch:
+        return MeasurementBatch(
+            ids=[i for b in batches for i in b.ids],
+            sources=[s for b in batches for s in b.sources],
+            steps=np.concatenate([b.steps for b in batches]),
+            times=np.concatenate([b.times for b in batches]),
+            features=np.concatenate([b.features for b in batches]),
+            levels=np.concatenate([b.levels for b in batches]),
+        )
+
+
+@dataclass(frozen=True)
+class MeasurementSpec:
+    """What a valid measurement looks like in one scenario: 5 * K_n features, known levels."""
+
+    feature_size: int
+    level_count: int
+
+    @classmethod
+    def of(cls, scenario: Scenario) -> MeasurementSpec:
+        return cls(
+            feature_size=len(PER_GBS_FEATURES) * scenario.policy.nearby_gbs,
+            level_count=scenario.channel.level_count,
+        )
+
+    def from_records(
+        self, records: Iterable[Measurement | Mapping]
+    ) -> tuple[MeasurementBatch, Counter]:
+        """Records (models or plain dicts off the wire) to a screened batch and the count of
+        refusals per reason."""
+        rejected: Counter = Counter()
+        kept: list[Measurement] = []
+        for record in records:
+            if not isinstance(record, Measurement):
+                try:
+                    record = Measurement.model_validate(record)
+                except ValidationError:
+                    rejected["malformed"] += 1
+                    continue
+            if len(record.features) != self.feature_size:
+                rejected["wrong_length"] += 1
+                continue
+            kept.append(record)
+        batch = MeasurementBatch.of_arrays(
+            [r.id for r in kept],
+            [r.source for r in kept],
+            np.array([r.step for r in kept], dtype=np.int64),
+            np.array([r.time for r in kept], dtype=np.float64),
+            np.array([r.features for r in kept], dtype=np.float64).reshape(-1, self.feature_size),
+            np.array([r.level for r in kept], dtype=np.int64),
+        )
+        batch, more = self.screen(batch)
+        return batch, rejected + more
+
+    def screen(self, batch: MeasurementBatch) -> tuple[MeasurementBatch, Counter]:
+        """The rows that satisfy the rules, and the count of refusals per reason (first
+        failing rule of each row)."""
+        n = len(batch)
+        if batch.features.ndim != 2 or batch.features.shape[1] != self.feature_size:
+            return MeasurementBatch.empty(self.feature_size), +Counter(wrong_length=n)
+        finite = np.isfinite(batch.features).all(axis=1) & np.isfinite(batch.times)
+        known = (batch.levels >= 0) & (batch.levels < self.level_count)
+        rejected = Counter()
+        if not finite.all():
+            rejected["not_finite"] = int((~finite).sum())
+        if not known.all():
+            rejected["unknown_level"] = int((finite & ~known).sum())
+        ok = finite & known
+        return (batch if ok.all() else batch.take(ok)), +rejected
+
+    def check(self, record: Measurement | Mapping) -> Measurement:
+        """One record, validated for this scenario; raises ValueError naming the reason."""
+        batch, rejected = self.from_records([record])
+        if rejected:
+            raise ValueError(f"measurement refused: {next(iter(rejected))}")
+        return batch.records()[0]

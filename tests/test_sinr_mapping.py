@@ -1,0 +1,333 @@
+from __future__ import annotations
+
+import json
+import math
+import threading
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from cloud_service.online_map_sim import Fleet, jammer_params
+from cloud_service.sinr_mapping import (
+    TARGET_ACCURACY,
+    ChangeDetector,
+    OnlineSinrMapper,
+    PublishedWeights,
+    RetrainConfig,
+    accuracy_of,
+    fit_sinr_map,
+    predict_levels,
+    simulated_measurements,
+)
+from cloud_service.sinr_memory import SinrMemory
+from jamnav.cli import main
+from shared.measurements import (
+    Measurement,
+    MeasurementBatch,
+    MeasurementSpec,
+    gbs_features,
+    scenario_features,
+)
+from shared.networks import from_bytes
+from shared.paper import TABLE_I_JAMMERS
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    # The SINR network is tiny: on two cores a second thread only adds hand-offs (~10x slower).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+# -- features ---------------------------------------------------------------------------------
+def test_gbs_features_by_hand_for_one_gbs():
+    got = gbs_features(np.array([3.0, 4.0]), np.array([[0.0, 0.0]]), 1, 50.0, 32.0)
+    want = [-3.0, -4.0, 5.0, math.atan2(-18.0, 5.0), math.atan2(-4.0, -3.0)]
+    assert got.dtype == np.float32 and got.shape == (5,)
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+
+
+def test_gbs_features_nearest_first_and_batched():
+    gbs = np.array([[10.0, 0.0], [0.0, 1.0], [-5.0, 0.0]])
+    got = gbs_features(np.zeros((2, 3, 2)), gbs, 2, 50.0, 32.0)
+    assert got.shape == (2, 3, 10)
+    np.testing.assert_allclose(got[1, 2, [0, 1, 2, 5, 6, 7]], [0, 1, 1, -5, 0, 5])
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    uav=st.tuples(st.floats(-100, 100), st.floats(-100, 100)),
+    shift=st.tuples(st.floats(-1000, 1000), st.floats(-1000, 1000)),
+)
+def test_gbs_features_depend_on_relative_position_only(uav, shift, scenario):
+    gbs = np.asarray(scenario.gbs.positions)
+    distances = np.sort(np.hypot(*(gbs - uav).T))[:5]
+    assume(np.diff(distances).min() > 1e-6)  # a near tie may order either way after a shift
+    here = gbs_features(np.array(uav), gbs, 4, 50.0, 32.0)
+    moved = gbs_features(np.array(uav) + shift, gbs + shift, 4, 50.0, 32.0)
+    np.testing.assert_allclose(here, moved, atol=2e-3)
+
+
+# -- replay memory ----------------------------------------------------------------------------
+def _batch(scenario, count, seed, time=0.0):
+    return simulated_measurements(scenario, None, count, np.random.default_rng(seed), time=time)
+
+
+def test_memory_survives_reopen_and_dedupes(tmp_path, scenario):
+    spec = MeasurementSpec.of(scenario)
+    path = tmp_path / "memory.sqlite"
+    first, second = _batch(scenario, 300, 1, time=10.0), _batch(scenario, 200, 2, time=20.0)
+    with SinrMemory(path, spec) as memory:
+        assert memory.append(first) == (300, 0)
+        assert memory.append(first) == (0, 300)  # an upload counted twice lands once
+        assert memory.append(second.records()) == (200, 0)
+        repeated = MeasurementBatch.concatenate([second.take(np.arange(5)),
+                                                 _batch(scenario, 3, 3, time=30.0)])
+        assert memory.append(MeasurementBatch.concatenate([repeated, repeated])) == (3, 13)
+    with SinrMemory(path, spec) as memory:
+        assert memory.count() == 503
+        everything = memory.recent(1000)
+        assert everything.ids == first.ids + second.ids + everything.ids[-3:]
+        np.testing.assert_array_equal(everything.features[:300], first.features)
+        np.testing.assert_array_equal(everything.levels[300:500], second.levels)
+        assert len(memory.since(20.0)) == 203 and len(memory.since(20.5)) == 3
+        sample = memory.sample(np.random.default_rng(0), 100)
+        assert len(set(sample.ids)) == 100 and set(sample.ids) <= set(everything.ids)
+
+
+def test_memory_keeps_the_most_recent(tmp_path, scenario):
+    with SinrMemory(tmp_path / "m.sqlite", MeasurementSpec.of(scenario), capacity=250) as memory:
+        batches = [_batch(scenario, 100, seed) for seed in range(4)]
+        for batch in batches:
+            memory.append(batch)
+        assert memory.count() == 250
+        assert memory.recent(250).ids == (batches[1].ids + batches[2].ids + batches[3].ids)[-250:]
+
+
+def test_bad_measurements_are_refused_and_counted(tmp_path, scenario):
+    spec = MeasurementSpec.of(scenario)
+    good = _batch(scenario, 4, 5)
+    nan = good.features.copy()
+    nan[1, 3] = np.nan
+    levels = good.levels.copy()
+    levels[2] = spec.level_count
+    bad = MeasurementBatch.of_arrays(good.ids, good.sources, good.steps, good.times, nan, levels)
+    record = good.records()[3].model_dump()
+    short = {**record, "id": "short", "features": record["features"][:-1]}
+    path = tmp_path / "m.sqlite"
+    with SinrMemory(path, spec) as memory:
+        assert memory.append(bad) == (2, 0)
+        assert memory.append([short, {"id": "x"}, {**record, "level": -1, "id": "neg"}]) == (0, 0)
+        wide = MeasurementBatch.of_arrays(["w"], "uav", 0, 0.0, np.zeros((1, 99)), [0])
+        assert memory.append(wide) == (0, 0)
+    with SinrMemory(path, spec) as memory:
+        assert memory.count() == 2
+        assert memory.rejected == {"not_finite": 1, "unknown_level": 2, "wrong_length": 2,
+                                   "malformed": 1}
+    with pytest.raises(ValueError, match="unknown_level"):
+        spec.check({**record, "level": 7})
+    assert spec.check(record) == Measurement(**record)
+
+
+def test_memory_is_shared_by_threads(tmp_path, scenario):
+    batches = [_batch(scenario, 100, seed) for seed in range(20)]
+    with SinrMemory(tmp_path / "m.sqlite", MeasurementSpec.of(scenario)) as memory:
+        threads = [threading.Thread(target=lambda part=part: [memory.append(b) for b in part])
+                   for part in (batches[:10], batches[10:])]
+        for thread in threads:
+            thread.start()
+        for _ in range(20):
+            memory.sample(np.random.default_rng(0), 50)
+        for thread in threads:
+            thread.join()
+        assert memory.count() == 2000
+
+
+def test_memory_refuses_another_scenarios_file(tmp_path, scenario):
+    SinrMemory(tmp_path / "m.sqlite", MeasurementSpec(20, 3)).close()
+    with pytest.raises(ValueError, match="feature_size"):
+        SinrMemory(tmp_path / "m.sqlite", MeasurementSpec(60, 3))
+
+
+# -- online mapping ---------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def mapping_scenario(scenario):
+    assert scenario.policy.nearby_gbs == len(scenario.gbs.positions)  # see the scenario file
+    return scenario
+
+
+@pytest.fixture(scope="module")
+def no_jammer_map(mapping_scenario):
+    network, card = fit_sinr_map(mapping_scenario, None, 20_000, 3000, seed=0)
+    assert card["accuracy"] >= TARGET_ACCURACY
+    return network, card["accuracy"]
+
+
+def _fly(mapper, fleet, scenario, setting, steps, start, now):
+    jammer = jammer_params(scenario, setting)
+    reports = []
+    for step in range(start, start + steps):
+        now[0] = step * scenario.timing.step_s
+        fleet.fly()
+        reports.append(mapper.ingest(fleet.uploads(jammer, now[0], step)))
+    return reports
+
+
+def _online(scenario, network, accuracy, **kwargs):
+    now = [0.0]
+    memory = SinrMemory(":memory:", MeasurementSpec.of(scenario))
+    # No wall-clock budget: a busy test machine must not cut a retraining short.
+    mapper = OnlineSinrMapper(scenario, memory, network, accuracy, clock=lambda: now[0],
+                              retrain=RetrainConfig(max_seconds=None), **kwargs)
+    return mapper, now
+
+
+@pytest.mark.parametrize("setting", TABLE_I_JAMMERS, ids=lambda s: s.label)
+def test_change_is_detected_and_retraining_restores_accuracy(mapping_scenario, no_jammer_map,
+                                                             setting):
+    network, accuracy = no_jammer_map
+    mapper, now = _online(mapping_scenario, network, accuracy, background=False, seed=3)
+    fleet = Fleet(mapping_scenario, 100, np.random.default_rng(11))
+    _fly(mapper, fleet, mapping_scenario, None, 21, 0, now)
+    assert mapper.events == []
+    _fly(mapper, fleet, mapping_scenario, setting, 4, 21, now)
+    assert [e["type"] for e in mapper.events] == ["change_detected"]
+    assert 20.0 <= mapper.events[0]["change_time"] <= 21.0
+    fresh = simulated_measurements(mapping_scenario, jammer_params(mapping_scenario, setting),
+                                   10_000, np.random.default_rng(5))
+    outdated = accuracy_of(network, fresh.features, fresh.levels)
+    _fly(mapper, fleet, mapping_scenario, setting, 40, 25, now)
+    assert [e["type"] for e in mapper.events] == ["change_detected", "sinr_weights_published"]
+    assert mapper.version == 1 and mapper.current_network() is not network
+    retrained = accuracy_of(mapper.current_network(), fresh.features, fresh.levels)
+    assert outdated < 0.95 <= TARGET_ACCURACY <= retrained
+
+
+def test_no_detection_with_a_still_jammer(mapping_scenario, no_jammer_map):
+    network, accuracy = no_jammer_map
+    for seed, setting in enumerate((None, TABLE_I_JAMMERS[0])):
+        mapper, now = _online(mapping_scenario, network, accuracy, background=False)
+        fleet = Fleet(mapping_scenario, 100, np.random.default_rng(seed))
+        if setting is not None:  # retrain on the first change, then keep the jammer still
+            _fly(mapper, fleet, mapping_scenario, setting, 45, 0, now)
+            assert mapper.version == 1
+        checks = [w for r in _fly(mapper, fleet, mapping_scenario, setting, 600, 45, now)
+                  for w in r.windows]
+        assert len(checks) == 300 and not any(w.fired for w in checks)
+        assert sum(e["type"] == "change_detected" for e in mapper.events) == (setting is not None)
+
+
+def test_background_retraining_publishes_without_blocking(mapping_scenario, no_jammer_map):
+    network, accuracy = no_jammer_map
+    published: list[PublishedWeights] = []
+    mapper, now = _online(mapping_scenario, network, accuracy, publish=published.append)
+    fleet = Fleet(mapping_scenario, 100, np.random.default_rng(2))
+    _fly(mapper, fleet, mapping_scenario, None, 4, 0, now)
+    reports = _fly(mapper, fleet, mapping_scenario, TABLE_I_JAMMERS[1], 45, 4, now)
+    assert sum(len(r.windows) for r in reports) < 5  # the detector is off during a change
+    assert not mapper.wait(timeout=0)  # the last ingest returned while training goes on
+    assert mapper.wait(timeout=30) and len(published) == 1
+    weights = published[0]
+    assert weights.version == mapper.version == 1 and weights.accuracy == mapper.accuracy
+    restored = from_bytes(weights.data, weights.sha256, mapper.current_network().architecture())
+    grid = np.random.default_rng(0).uniform(-50, 50, (500, 2))
+    features = scenario_features(mapping_scenario, grid)
+    np.testing.assert_array_equal(predict_levels(restored, features),
+                                  predict_levels(mapper.current_network(), features))
+    raster = mapper.map_raster(spacing=2.0)
+    nodes = np.array([[raster.x0 + 2.0 * 7, raster.y0 + 2.0 * 9]])
+    assert raster.level_at(nodes)[0] == predict_levels(
+        mapper.current_network(), scenario_features(mapping_scenario, nodes))[0]
+    mapper.close()
+
+
+def test_detector_rule():
+    detector = ChangeDetector(baseline=0.98)
+    ok = np.ones(200, dtype=bool)
+    slightly = ok.copy()
+    slightly[:8] = False  # 0.96: inside the allowance
+    assert not any(c.fired for c in detector.update(np.tile(slightly, 5), np.zeros(1000)))
+    assert detector.cusum == 0.0
+    low = ok.copy()
+    low[:12] = False  # 0.94: 0.04 below, 0.015 over the allowance each time
+    checks = detector.update(np.tile(low, 4), np.arange(800.0))
+    assert [c.fired for c in checks] == [False, False, False, True]
+    assert detector.change_start == 0.0 and not detector.armed
+    assert detector.update(np.zeros(400, dtype=bool), np.zeros(400)) == []
+    detector.reset(0.97)
+    very_low = ok.copy()
+    very_low[:22] = False  # 0.89: 0.08 below the baseline fires at once
+    assert detector.update(very_low, np.full(200, 5.0))[-1].fired
+
+
+# -- command line -----------------------------------------------------------------------------
+def run(capsys, *argv):
+    code = main(list(argv))
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+@pytest.fixture(scope="module")
+def small_map(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sinr") / "map.safetensors"
+    code = main(["fit-sinr", "--jammer", "0,0,1", "--samples", "2000", "--steps", "300",
+                 "--seed", "4", "--out", str(out)])
+    assert code == 0
+    return out
+
+
+def test_fit_sinr_writes_weights_and_card(small_map):
+    card = json.loads(small_map.with_suffix(".json").read_text())
+    assert card["samples"] == 2000 and card["seed"] == 4 and card["steps"] == 300
+    assert card["jammer"]["power_w"] == 1.0 and 0.5 < card["accuracy"] <= 1.0
+    assert {"command", "wall_seconds", "git_commit", "sha256", "architecture"} <= card.keys()
+
+
+def test_sinr_model_predicts_levels_in_the_true_map_shape(capsys, small_map, scenario):
+    code, out, _ = run(capsys, "sinr", "--model", str(small_map), "--at", "0,0", "-12.5,-33")
+    rows = json.loads(out)
+    assert code == 0 and [list(r) for r in rows] == [["x", "y", "sinr_db", "level",
+                                                      "serving_gbs"]] * 2
+    assert rows[1]["x"] == -12.5 and rows[1]["sinr_db"] is None and rows[1]["serving_gbs"] is None
+    assert all(0 <= r["level"] < scenario.channel.level_count for r in rows)
+
+
+@pytest.mark.parametrize("damage", ["garbage", "missing", "card", "jammer"])
+def test_sinr_model_bad_input_is_one_line_exit_2(capsys, tmp_path, small_map, damage):
+    model = tmp_path / "bad.safetensors"
+    extra = []
+    if damage == "garbage":
+        model.write_bytes(b"not weights at all")
+        model.with_suffix(".json").write_text(small_map.with_suffix(".json").read_text())
+    elif damage == "card":
+        model.write_bytes(small_map.read_bytes())
+        model.with_suffix(".json").write_text("{")
+    elif damage == "jammer":
+        model, extra = small_map, ["--jammer", "0,0,1"]
+    code, out, err = run(capsys, "sinr", "--model", str(model), *extra, "--at", "0,0")
+    assert code == 2 and out == ""
+    assert err.startswith("jamnav: error: --model") and err.count("\n") == 1
+    assert "Traceback" not in err
+
+
+def test_fit_sinr_refuses_bad_arguments(capsys, tmp_path):
+    for argv in (["--samples", "5"], ["--out", str(tmp_path / "x.pt")]):
+        args = ["fit-sinr", "--out", str(tmp_path / "x.safetensors"), *argv]
+        code, _, err = run(capsys, *args)
+        assert code == 2 and err.count("\n") == 1
+
+
+def test_online_map_writes_figure_and_timeline(capsys, tmp_path, small_map):
+    out = tmp_path / "fig2b.png"
+    code, _, err = run(capsys, "online-map", "--model", str(small_map), "--period", "20",
+                       "--uavs", "20", "--out", str(out))
+    assert code == 0 and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    timeline = json.loads(out.with_suffix(".json").read_text())
+    assert len(timeline["t"]) == len(timeline["accuracy"]) == 90
+    assert [c["t"] for c in timeline["jammer_changes"]] == [0, 10, 30, 50, 70]
+    assert "wrote" in err
