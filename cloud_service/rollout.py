@@ -158,10 +158,11 @@ def run_episodes(
     num_envs: int = 64,
     on_step: Callable[[VectorWorld], None] | None = None,
     on_episode: Callable[[int], None] | None = None,
+    record_measurements: bool = False,
 ) -> EpisodeResults:
     """Fly ``episodes`` episodes (episode k seeded by ``episode_seed(seed, k)``) under one
     jammer setting, ``num_envs`` at a time. Results are independent of ``num_envs``."""
-    world = VectorWorld(scenario, min(num_envs, episodes), num_uavs)
+    world = VectorWorld(scenario, min(num_envs, episodes), num_uavs, record_measurements)
     params = None
     if jammer is not None:
         params = JammerParams(jammer.x, jammer.y, jammer.power_w, scenario.jammer.height_m)

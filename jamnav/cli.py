@@ -18,8 +18,7 @@ import numpy as np
 
 from shared.radio import RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario
-
-INITIAL_SINR_MAP = Path(__file__).resolve().parent.parent / "models/sinr_map_no_jammer.safetensors"
+from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET
 
 
 class UsageError(Exception):
@@ -196,28 +195,12 @@ def cmd_map(args: argparse.Namespace) -> int:
     return 0
 
 
-DEFAULT_VALUE_NET = Path(__file__).resolve().parent.parent / "models" / "value_net.safetensors"
-EVAL_METHODS = ("perfect", "outdated", "orca", "straight")
-
-
 def cmd_eval(args: argparse.Namespace) -> int:
     import torch
 
-    from cloud_service.rollout import (
-        LookaheadController,
-        OrcaController,
-        StraightController,
-        outcome_rates,
-        outdated_maps,
-        perfect_maps,
-        run_episodes,
-    )
+    from cloud_service.evaluation import EvaluationError, evaluate
     from jamnav.progress import ProgressBar
-    from shared.features import MethodOptions, joint_state_size
-    from shared.networks import WeightsError, load_network
-    from shared.outcomes import Outcome
     from shared.paper import JammerSetting
-    from shared.policy import LookaheadPolicy
 
     if args.episodes < 1:
         raise UsageError("--episodes must be at least 1")
@@ -227,21 +210,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
     jammer = RadioModel.jammer_of(scenario)
     setting = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
     torch.set_num_threads(1)
-    if args.method in ("perfect", "outdated"):
-        try:
-            network, _ = load_network(Path(args.model), {"kind": "value"})
-        except WeightsError as exc:
-            raise UsageError(f"--model: {exc}") from None
-        wanted = joint_state_size(scenario, MethodOptions.from_dict(network.method))
-        if network.input_size != wanted:
-            raise UsageError(f"--model: built for {network.input_size} inputs, this scenario "
-                             f"gives {wanted}")
-        maps = perfect_maps(scenario) if args.method == "perfect" else outdated_maps(scenario)
-        controller = LookaheadController(LookaheadPolicy(scenario, network), maps)
-    elif args.method == "orca":
-        controller = OrcaController(scenario)
-    else:
-        controller = StraightController()
     bar = ProgressBar(f"eval {args.method}", args.episodes)
     finished = 0
 
@@ -250,24 +218,20 @@ def cmd_eval(args: argparse.Namespace) -> int:
         finished += 1
         bar.update(finished)
 
-    results = run_episodes(scenario, controller, args.episodes, args.seed, setting, args.uavs,
-                           on_episode=on_episode)
-    report = {
-        "method": args.method,
-        **outcome_rates(results.outcomes),
-        "episodes": args.episodes,
-        "uavs": int(results.outcomes.shape[1]),
-        "seed": args.seed,
-        "jammer": None if setting is None else setting._asdict(),
-        "scenario": scenario.name,
-    }
-    if args.per_episode:
-        report["outcomes"] = [[Outcome(code).label for code in row] for row in results.outcomes]
+    try:
+        report = evaluate(scenario, args.method, args.episodes, args.seed, setting, args.uavs,
+                          Path(args.model), Path(args.sinr_map), on_episode)
+    except EvaluationError as exc:
+        raise UsageError(f"eval: {exc}") from None
+    if not args.per_episode:
+        del report["outcomes"]
     if args.json:
         print(json.dumps(report))
     else:
         print(f"{args.method}: " + ", ".join(
             f"{key[:-5]} {report[key]:.1%}" for key in report if key.endswith("_rate")))
+        if "transient" in report:
+            print(f"  (after a transient of {report['transient']['episodes']} episodes)")
     return 0
 
 
@@ -377,6 +341,9 @@ def cmd_online_map(args: argparse.Namespace) -> int:
     return 0
 
 
+EVAL_METHODS = ("proposed", "perfect", "outdated", "orca", "straight")
+
+
 # -- parser -----------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
@@ -415,12 +382,14 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation = commands.add_parser("eval", help="fly seeded episodes in-process and score them")
     _add_scenario(evaluation)
     _add_jammer(evaluation)
-    evaluation.add_argument("--method", choices=EVAL_METHODS, default="perfect")
+    evaluation.add_argument("--method", choices=EVAL_METHODS, default="proposed")
     evaluation.add_argument("--episodes", type=int, default=200)
     evaluation.add_argument("--uavs", type=int, default=None, help="UAVs per episode")
     evaluation.add_argument("--seed", type=int, default=0)
-    evaluation.add_argument("--model", default=str(DEFAULT_VALUE_NET),
-                            help="value network (default: the shipped one)")
+    evaluation.add_argument("--model", default=str(VALUE_NET),
+                            help="value network (default: the shipped paper-method one)")
+    evaluation.add_argument("--sinr-map", default=str(SINR_MAP_NO_JAMMER),
+                            help="initial SINR map of the proposed method (default: shipped)")
     evaluation.add_argument("--json", action="store_true", help="print JSON")
     evaluation.add_argument("--per-episode", action="store_true",
                             help="include each episode's per-UAV outcomes")
@@ -456,7 +425,7 @@ def build_parser() -> argparse.ArgumentParser:
         "online-map", help="accuracy of the online SINR map across jammer changes (Fig. 2b)"
     )
     _add_scenario(online)
-    online.add_argument("--model", default=str(INITIAL_SINR_MAP), metavar="PATH",
+    online.add_argument("--model", default=str(SINR_MAP_NO_JAMMER), metavar="PATH",
                         help="the initial map (default: models/sinr_map_no_jammer.safetensors)")
     online.add_argument("--uavs", type=int, default=100, help="UAVs uploading every step")
     online.add_argument("--period", type=float, default=120.0,

@@ -69,6 +69,7 @@ class Uav(_Strict):
     speed_choices: int = Field(ge=1, le=32)
     heading_choices: int = Field(ge=1, le=63)
     arrival_tolerance_m: Positive
+    measurements_per_step: int = Field(ge=1, le=100)
 
 
 class Timing(_Strict):

@@ -75,7 +75,13 @@ class MissionSampler:
 class VectorWorld:
     """E environments x J UAVs. All state is public numpy arrays, indexed [env, uav]."""
 
-    def __init__(self, scenario: Scenario, num_envs: int, num_uavs: int | None = None):
+    def __init__(
+        self,
+        scenario: Scenario,
+        num_envs: int,
+        num_uavs: int | None = None,
+        record_measurements: bool = False,
+    ):
         if num_envs < 1:
             raise ValueError("num_envs must be at least 1")
         self.scenario = scenario
@@ -105,6 +111,14 @@ class VectorWorld:
         self.level = np.zeros((e, j), dtype=np.int8)
         self.serving_gbs = np.zeros((e, j), dtype=np.int64)
         self.steps = np.zeros(e, dtype=np.int64)
+        # What each UAV measured along its last step (uav.measurements_per_step points, the
+        # step's end last), for the online SINR map; off unless asked for, as it costs radio
+        # evaluations that training does not need.
+        self.record_measurements = record_measurements
+        samples = scenario.uav.measurements_per_step
+        self.measured_xy = np.zeros((e, j, samples, 2))
+        self.measured_level = np.zeros((e, j, samples), dtype=np.int8)
+        self.measured = np.zeros((e, j), dtype=bool)
         default = self.radio.default_jammer
         self.jammer_x = np.full(e, default.x if default else 0.0)
         self.jammer_y = np.full(e, default.y if default else 0.0)
@@ -151,6 +165,16 @@ class VectorWorld:
         self.serving_gbs[env_ids] = reading.serving_gbs
         self.below_steps[env_ids] = (reading.level == 0).astype(np.int64)
 
+    def _record_measurements(self, new_position: np.ndarray, active: np.ndarray) -> None:
+        samples = self.measured_xy.shape[2]
+        share = (np.arange(1, samples + 1) / samples)[None, None, :, None]
+        self.measured_xy = self.position[:, :, None] + share * (new_position - self.position)[
+            :, :, None]
+        jammer = self.jammer()
+        per_sample = JammerParams(*(np.asarray(f)[..., None] for f in jammer))
+        self.measured_level = self.radio.evaluate(self.measured_xy, per_sample).level
+        self.measured = active.copy()
+
     # -- dynamics --------------------------------------------------------------------------
     @property
     def active(self) -> np.ndarray:
@@ -182,6 +206,8 @@ class VectorWorld:
         new_position = np.where(arrived[..., None], self.destination, new_position)
         reading = self.radio.evaluate(new_position, self.jammer())
         below = np.where(reading.level == 0, self.below_steps + 1, 0)
+        if self.record_measurements:
+            self._record_measurements(new_position, active)
 
         check_now = self.rewards.is_check_step(self.steps)[:, None]
         self.steps += 1

@@ -1,0 +1,189 @@
+"""Evaluation of the methods of Table I, in-process.
+
+``perfect`` and ``outdated`` fly the lookahead on the true current map or the map without a
+jammer. ``proposed`` flies it on the online SINR map: the shipped no-jammer network, updated
+by the cloud's own code (memory, change detector, retraining) from the measurements the UAVs
+take during the run. Its episodes fly one after another in a single world, as the real system
+does, and simulated time advances one step per world step, so the map adapts at the pace it
+would in flight. The episodes that start before the first new map is published are the
+transient and are reported apart; the headline figures are the episodes after it.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cloud_service.rollout import (
+    MAP_SPACING_M,
+    LookaheadController,
+    OrcaController,
+    StraightController,
+    outcome_rates,
+    outdated_maps,
+    perfect_maps,
+    run_episodes,
+)
+from cloud_service.sinr_mapping import OnlineSinrMapper, RetrainConfig, level_raster
+from cloud_service.sinr_memory import SinrMemory
+from shared.features import MethodOptions, joint_state_size
+from shared.measurements import MeasurementBatch, MeasurementSpec, scenario_features
+from shared.networks import SinrMapNetwork, ValueNetwork, WeightsError, load_network
+from shared.outcomes import Outcome
+from shared.paper import JammerSetting
+from shared.policy import LookaheadPolicy, RasterMap
+from shared.scenario import Scenario
+from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET
+from world_sim.core import VectorWorld
+
+METHODS = ("proposed", "perfect", "outdated", "orca", "straight")
+
+
+class EvaluationError(ValueError):
+    """Inputs that cannot be evaluated (missing or mismatched weights); one line."""
+
+
+def load_value_net(scenario: Scenario, path: Path) -> ValueNetwork:
+    try:
+        network, _ = load_network(path, {"kind": "value"})
+    except WeightsError as exc:
+        raise EvaluationError(str(exc)) from None
+    wanted = joint_state_size(scenario, MethodOptions.from_dict(network.method))
+    if network.input_size != wanted:
+        raise EvaluationError(f"{path}: built for {network.input_size} inputs, this scenario "
+                              f"gives {wanted}")
+    return network
+
+
+class OnlineMaps:
+    """The proposed method's map provider and upload path: the UAVs' measurements go to an
+    ``OnlineSinrMapper`` and the lookahead reads the raster of its network in service."""
+
+    def __init__(self, scenario: Scenario, sinr_map: Path, memory_dir: Path):
+        try:
+            network, card = load_network(sinr_map, {"kind": "sinr_map"})
+        except WeightsError as exc:
+            raise EvaluationError(str(exc)) from None
+        assert isinstance(network, SinrMapNetwork)
+        self.scenario = scenario
+        self.now = 0.0
+        self.memory = SinrMemory(memory_dir / "measurements.sqlite", MeasurementSpec.of(scenario))
+        # No wall-clock budget: a simulated run must not depend on the machine's speed.
+        self.mapper = OnlineSinrMapper(
+            scenario, self.memory, network, float(card.get("accuracy", 0.99)),
+            retrain=RetrainConfig(max_seconds=None), clock=lambda: self.now, background=False,
+        )
+        self._raster_version = -1
+        self._raster = None
+        self.uploads = 0
+
+    def __call__(self, world: VectorWorld, rows: np.ndarray) -> RasterMap:
+        if self._raster_version != self.mapper.version:
+            self._raster = level_raster(self.mapper.current_network(), self.scenario,
+                                        MAP_SPACING_M)
+            self._raster_version = self.mapper.version
+        return RasterMap(self.scenario, [self._raster], np.zeros(rows.size, dtype=np.int64))
+
+    def upload(self, world: VectorWorld) -> None:
+        """Every UAV that flew this step uploads what it measured along the way."""
+        self.now += world.dt
+        env, uav = np.nonzero(world.measured)
+        if env.size == 0:
+            return
+        xy = world.measured_xy[env, uav].reshape(-1, 2)
+        levels = world.measured_level[env, uav].reshape(-1)
+        samples = world.measured_xy.shape[2]
+        step = int(world.steps[env[0]])
+        ids = [f"{self.uploads}-{k}" for k in range(levels.size)]
+        self.uploads += 1
+        batch = MeasurementBatch.of_arrays(
+            ids, np.repeat([f"uav-{u}" for u in uav], samples).tolist(), step,
+            self.now - world.dt * (1 - np.tile(np.arange(1, samples + 1) / samples, env.size)),
+            scenario_features(self.scenario, xy), levels,
+        )
+        self.mapper.ingest(batch)
+
+    def close(self) -> None:
+        self.mapper.close()
+        self.memory.close()
+
+
+def evaluate(
+    scenario: Scenario,
+    method: str,
+    episodes: int,
+    seed: int,
+    jammer: JammerSetting | None,
+    uavs: int | None = None,
+    value_net: Path = VALUE_NET,
+    sinr_map: Path = SINR_MAP_NO_JAMMER,
+    on_episode: Callable[[int], None] | None = None,
+) -> dict[str, Any]:
+    """Fly ``episodes`` seeded episodes with ``method``; the report of ``jamnav eval``."""
+    if method not in METHODS:
+        raise EvaluationError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    online = None
+    with tempfile.TemporaryDirectory(prefix="jamnav-eval-") as scratch:
+        if method in ("proposed", "perfect", "outdated"):
+            policy = LookaheadPolicy(scenario, load_value_net(scenario, value_net))
+            if method == "proposed":
+                online = OnlineMaps(scenario, sinr_map, Path(scratch))
+                maps = online
+            else:
+                maps = perfect_maps(scenario) if method == "perfect" else outdated_maps(scenario)
+            controller = LookaheadController(policy, maps)
+        elif method == "orca":
+            controller = OrcaController(scenario)
+        else:
+            controller = StraightController()
+
+        start_version = np.zeros(episodes, dtype=np.int64)
+
+        def episode_done(episode: int) -> None:
+            if online is not None and episode + 1 < episodes:
+                start_version[episode + 1] = online.mapper.version
+            if on_episode is not None:
+                on_episode(episode)
+
+        try:
+            results = run_episodes(
+                scenario, controller, episodes, seed, jammer, uavs,
+                num_envs=1 if online else 64,
+                on_step=online.upload if online else None,
+                on_episode=episode_done,
+                record_measurements=online is not None,
+            )
+        finally:
+            if online is not None:
+                online.close()
+    report: dict[str, Any] = {
+        "method": method,
+        "episodes": episodes,
+        "uavs": int(results.outcomes.shape[1]),
+        "seed": seed,
+        "jammer": None if jammer is None else jammer._asdict(),
+        "scenario": scenario.name,
+    }
+    if online is None:
+        report.update(outcome_rates(results.outcomes))
+    else:
+        adapted = start_version > 0
+        changed = any(event["type"] == "change_detected" for event in online.mapper.events)
+        transient = (int(np.argmax(adapted)) if adapted.any() else episodes) if changed else 0
+        steady = results.outcomes[transient:]
+        report.update(outcome_rates(steady) if steady.size else
+                      {key: math.nan for key in outcome_rates(results.outcomes)})
+        report["transient"] = {
+            "episodes": transient,
+            "rule": "episodes that started before the first new SINR map was published",
+            **(outcome_rates(results.outcomes[:transient]) if transient else {}),
+        }
+        report["events"] = online.mapper.events
+        report["steady_episodes"] = int(episodes - transient)
+    report["outcomes"] = [[Outcome(code).label for code in row] for row in results.outcomes]
+    return report
