@@ -187,3 +187,93 @@ def evaluate(
         report["steady_episodes"] = int(episodes - transient)
     report["outcomes"] = [[Outcome(code).label for code in row] for row in results.outcomes]
     return report
+
+
+TABLE_METHODS = ("proposed", "outdated", "perfect")
+RATE_KEYS = ("success_rate", "disconnection_rate", "collision_rate", "timeout_rate")
+
+
+def table_one(
+    scenario: Scenario,
+    episodes: int,
+    seed: int,
+    value_nets: dict[str, Path],
+    on_run: Callable[[str], None] | None = None,
+) -> list[dict[str, Any]]:
+    """Table I's four jammer settings x three methods, for each named value network."""
+    from shared.paper import TABLE_I_JAMMERS, TABLE_I_RESULTS
+
+    rows = []
+    for setting_index, setting in enumerate(TABLE_I_JAMMERS):
+        for method in TABLE_METHODS:
+            paper = dict(zip(("success", "disconnection", "collision"),
+                             TABLE_I_RESULTS[method][setting_index], strict=True))
+            for name, path in value_nets.items():
+                if on_run is not None:
+                    on_run(f"{setting.label} {method} {name}")
+                report = evaluate(scenario, method, episodes, seed, setting, value_net=path)
+                row = {"jammer": setting.label, "method": method, "value_net": name,
+                       **{key: report[key] for key in RATE_KEYS},
+                       "episodes": report.get("steady_episodes", episodes),
+                       "transient_episodes": report.get("transient", {}).get("episodes", 0),
+                       **{f"paper_{key}": value / 100 for key, value in paper.items()}}
+                rows.append(row)
+    return rows
+
+
+def write_table(rows: list[dict[str, Any]], out_dir: Path, command: str) -> tuple[Path, Path]:
+    import csv
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    csv_path, md_path = out_dir / "table1.csv", out_dir / "table1.md"
+    with csv_path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+    def pct(value: float) -> str:
+        return "n/a" if value != value else f"{100 * value:.1f}"
+
+    lines = [
+        "# Table I: ours beside the paper's",
+        "",
+        f"Produced by `{command}`. Success / disconnection / collision / timeout in % of",
+        "UAV-episodes; the paper's figures (success / disconnection / collision) and the",
+        "difference in success. `proposed` counts the episodes after the transient (those that",
+        "started before the first new SINR map was published); the transient length is given.",
+        "",
+        "| jammer | method | value network | ours: S / D / C / T | paper: S / D / C | "
+        "delta S | transient |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        ours = " / ".join(pct(row[key]) for key in RATE_KEYS)
+        paper = " / ".join(pct(row[f"paper_{key}"]) for key in
+                           ("success", "disconnection", "collision"))
+        delta = 100 * (row["success_rate"] - row["paper_success"])
+        transient = row["transient_episodes"] if row["method"] == "proposed" else ""
+        lines.append(f"| {row['jammer']} | {row['method']} | {row['value_net']} | {ours} | "
+                     f"{paper} | {delta:+.1f} | {transient} |")
+    md_path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return md_path, csv_path
+
+
+def trajectories(
+    scenario: Scenario, setting: JammerSetting | None, seed: int, value_net: Path
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """One episode on the true map: positions (steps + 1, J, 2), destinations (J, 2) and
+    each UAV's outcome, for the paper's Fig. 3."""
+    policy = LookaheadPolicy(scenario, load_value_net(scenario, value_net))
+    track: list[np.ndarray] = []
+    destinations: list[np.ndarray] = []
+
+    def record(world: VectorWorld) -> None:
+        if not track:
+            track.append(world.start[0].copy())
+            destinations.append(world.destination[0].copy())
+        track.append(world.position[0].copy())
+
+    results = run_episodes(scenario, LookaheadController(policy, perfect_maps(scenario)), 1,
+                           seed, setting, num_envs=1, on_step=record)
+    return (np.stack(track), destinations[0],
+            [Outcome(code).label for code in results.outcomes[0]])

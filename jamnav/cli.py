@@ -18,7 +18,7 @@ import numpy as np
 
 from shared.radio import RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario
-from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET
+from shared.shipped import EXTENDED_VALUE_NET, SINR_MAP_NO_JAMMER, VALUE_NET
 
 
 class UsageError(Exception):
@@ -235,6 +235,69 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_table(args: argparse.Namespace) -> int:
+    import torch
+
+    from cloud_service.evaluation import EvaluationError, table_one, write_table
+
+    if args.episodes < 1:
+        raise UsageError("--episodes must be at least 1")
+    torch.set_num_threads(1)
+    scenario = load_scenario(args.scenario)
+    nets = {"paper": Path(args.model), "extended": Path(args.extended_model)}
+    runs = 4 * 3 * len(nets)
+    done = 0
+
+    def on_run(label: str) -> None:
+        nonlocal done
+        done += 1
+        print(f"table: run {done}/{runs}: {label}", file=sys.stderr, flush=True)
+
+    try:
+        rows = table_one(scenario, args.episodes, args.seed, nets, on_run)
+    except EvaluationError as exc:
+        raise UsageError(f"table: {exc}") from None
+    command = "jamnav " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["table"] else "jamnav table"
+    md_path, csv_path = write_table(rows, Path(args.out), command)
+    print(md_path.read_text(encoding="utf-8"))
+    print(f"wrote {md_path} and {csv_path}", file=sys.stderr)
+    return 0
+
+
+def cmd_figures(args: argparse.Namespace) -> int:
+
+    from cloud_service.evaluation import EvaluationError, trajectories
+    from shared.paper import TABLE_I_JAMMERS
+    from shared.plots import plot_reward_curve, save_trajectory_figure
+
+    _one_torch_thread()
+    scenario = load_scenario(args.scenario)
+    out = Path(args.out)
+    log = Path(args.train_log)
+    if not log.is_file():
+        raise UsageError(f"--train-log {log}: no such file (run jamnav train first)")
+    plot_reward_curve(log, out / "fig2a_reward_curve.png")
+    print(f"wrote {out / 'fig2a_reward_curve.png'}", file=sys.stderr)
+    online_argv = ["online-map", "--out", str(out / "fig2b_online_map_accuracy.png"),
+                   "--seed", str(args.seed)]
+    if args.scenario:
+        online_argv += ["--scenario", args.scenario]
+    cmd_online_map(build_parser().parse_args(online_argv))
+    panels = []
+    for setting in (None, *TABLE_I_JAMMERS[:3]):
+        jammer = None if setting is None else scenario.with_jammer(*setting)
+        params = None if jammer is None else RadioModel.jammer_of(jammer)
+        try:
+            positions, destinations, outcomes = trajectories(
+                scenario, setting, args.seed, Path(args.model))
+        except EvaluationError as exc:
+            raise UsageError(f"figures: {exc}") from None
+        panels.append((params, positions, destinations, outcomes))
+    save_trajectory_figure(scenario, panels, out / "fig3_trajectories.png")
+    print(f"wrote {out / 'fig3_trajectories.png'}", file=sys.stderr)
+    return 0
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from cloud_service.value_training import TrainConfig, train
     from jamnav.progress import ProgressBar
@@ -394,6 +457,26 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--per-episode", action="store_true",
                             help="include each episode's per-UAV outcomes")
     evaluation.set_defaults(handler=cmd_eval)
+
+    table = commands.add_parser("table", help="Table I: 4 jammer settings x 3 methods")
+    _add_scenario(table)
+    table.add_argument("--episodes", type=int, default=200, help="episodes per cell")
+    table.add_argument("--seed", type=int, default=0)
+    table.add_argument("--out", default="results", metavar="DIR")
+    table.add_argument("--model", default=str(VALUE_NET), help="the paper-method value network")
+    table.add_argument("--extended-model", default=str(EXTENDED_VALUE_NET),
+                       help="the extended-method value network")
+    table.set_defaults(handler=cmd_table)
+
+    figures = commands.add_parser("figures", help="the paper's Fig. 2a, 2b and 3 from real runs")
+    _add_scenario(figures)
+    figures.add_argument("--out", default="results", metavar="DIR")
+    figures.add_argument("--seed", type=int, default=0)
+    figures.add_argument("--train-log", default=str(VALUE_NET.with_name("train_log.csv")),
+                         help="training log for Fig. 2a (default: the shipped model's)")
+    figures.add_argument("--model", default=str(EXTENDED_VALUE_NET),
+                         help="value network flown in Fig. 3 (default: the extended one)")
+    figures.set_defaults(handler=cmd_figures)
 
     training = commands.add_parser("train", help="train the value network (Algorithm 1)")
     _add_scenario(training)

@@ -90,3 +90,26 @@ def plot_reward_curve(log_csv: Path, out: Path, window: int = 200) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)
     plt.close(fig)
+
+
+def save_trajectory_figure(
+    scenario: Scenario,
+    panels: list[tuple[JammerParams | None, np.ndarray, np.ndarray, list[str]]],
+    out: Path,
+) -> None:
+    """The paper's Fig. 3: trajectories (lines with dots) and destinations (crosses) over the
+    coverage map of each jammer setting. ``panels``: (jammer, positions (T, J, 2),
+    destinations (J, 2), outcomes)."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 4.8))
+    for ax, (jammer, positions, destinations, outcomes) in zip(np.atleast_1d(axes), panels,
+                                                               strict=True):
+        draw_coverage(ax, scenario, jammer, resolution=201)
+        for uav in range(positions.shape[1]):
+            line = ax.plot(positions[:, uav, 0], positions[:, uav, 1], ".-", markersize=3,
+                           linewidth=1.2, label=f"UAV {uav}: {outcomes[uav]}")[0]
+            ax.plot(*destinations[uav], "x", color=line.get_color(), markersize=9, mew=2)
+        ax.legend(loc="lower left", fontsize=6, framealpha=0.85)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)

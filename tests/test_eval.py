@@ -74,3 +74,23 @@ def test_proposed_detects_the_jammer_and_adapts(capsys):
     assert 0 < report["transient"]["episodes"] < 20
     assert report["steady_episodes"] == 20 - report["transient"]["episodes"]
     assert abs(sum(report[k] for k in report if k.endswith("_rate")) - 1) < 1e-9
+
+
+def test_table_files_are_well_formed(tmp_path):
+    import csv
+
+    from cloud_service.evaluation import write_table
+
+    rows = [{"jammer": "(0,0) 1 W", "method": method, "value_net": "paper",
+             "success_rate": 0.9, "disconnection_rate": 0.05, "collision_rate": 0.03,
+             "timeout_rate": 0.02, "episodes": 10, "transient_episodes": 3,
+             "paper_success": 0.923, "paper_disconnection": 0.056, "paper_collision": 0.018}
+            for method in ("proposed", "outdated")]
+    md_path, csv_path = write_table(rows, tmp_path, "jamnav table --episodes 10")
+    with csv_path.open() as handle:
+        assert list(csv.DictReader(handle))[1]["method"] == "outdated"
+    lines = md_path.read_text().splitlines()
+    table = [line for line in lines if line.startswith("|")]
+    assert len(table) == 2 + len(rows)
+    assert {line.count("|") for line in table} == {8}
+    assert "| 90.0 / 5.0 / 3.0 / 2.0 | 92.3 / 5.6 / 1.8 | -2.3 | 3 |" in table[2]
