@@ -20,11 +20,12 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	$(PIP) install -e '.[dev]'
 	@touch $(STAMP)
 
+# The main job: the distributed system (router, world, cloud, 4 agent processes) in real time,
+# the jammer swapped live through the control topic midway, then a summary and figures.
 demo: install
-	$(BIN)/jamnav map --no-jammer --out results/demo/coverage_no_jammer.png
-	$(BIN)/jamnav map --jammer 0,0,1 --out results/demo/coverage_jammer_0_0_1W.png
-	$(BIN)/jamnav eval --method perfect --jammer 0,0,1 --episodes 100
-	$(BIN)/jamnav eval --method outdated --jammer 0,0,1 --episodes 100
+	$(BIN)/jamnav up --uavs 4 --realtime --rate 100 --duration 60 --swap-jammer-at 30 \
+		--swap-to 25,-10,1 --retrain-samples 2000 --model models/value_net_extended.safetensors \
+		--run-dir results/demo/up
 
 test: install
 	$(BIN)/python -m pytest

@@ -10,7 +10,7 @@ import platform
 import sys
 import time
 
-BENCHMARKS = ["bench_radio", "bench_world", "bench_policy", "bench_sinr"]
+BENCHMARKS = ["bench_radio", "bench_world", "bench_policy", "bench_sinr", "bench_bus"]
 
 
 def main() -> int:

@@ -20,7 +20,6 @@ from typing import Any
 import numpy as np
 
 from cloud_service.rollout import (
-    MAP_SPACING_M,
     LookaheadController,
     OrcaController,
     StraightController,
@@ -29,14 +28,14 @@ from cloud_service.rollout import (
     perfect_maps,
     run_episodes,
 )
-from cloud_service.sinr_mapping import OnlineSinrMapper, RetrainConfig, level_raster
+from cloud_service.sinr_mapping import OnlineSinrMapper, RetrainConfig
 from cloud_service.sinr_memory import SinrMemory
 from shared.features import MethodOptions, joint_state_size
 from shared.measurements import MeasurementBatch, MeasurementSpec, scenario_features
 from shared.networks import SinrMapNetwork, ValueNetwork, WeightsError, load_network
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting
-from shared.policy import LookaheadPolicy, RasterMap
+from shared.policy import LookaheadPolicy, RasterMap, sinr_network_raster
 from shared.scenario import Scenario
 from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET
 from world_sim.core import VectorWorld
@@ -84,8 +83,7 @@ class OnlineMaps:
 
     def __call__(self, world: VectorWorld, rows: np.ndarray) -> RasterMap:
         if self._raster_version != self.mapper.version:
-            self._raster = level_raster(self.mapper.current_network(), self.scenario,
-                                        MAP_SPACING_M)
+            self._raster = sinr_network_raster(self.mapper.current_network(), self.scenario)
             self._raster_version = self.mapper.version
         return RasterMap(self.scenario, [self._raster], np.zeros(rows.size, dtype=np.int64))
 

@@ -22,10 +22,14 @@ from cloud_service.sinr_mapping import (
     OnlineSinrMapper,
     RetrainConfig,
     measurements_at,
-    predict_levels,
 )
 from cloud_service.sinr_memory import SinrMemory
-from shared.measurements import MeasurementBatch, MeasurementSpec, scenario_features
+from shared.measurements import (
+    MeasurementBatch,
+    MeasurementSpec,
+    predict_levels,
+    scenario_features,
+)
 from shared.networks import SinrMapNetwork
 from shared.paper import TABLE_I_JAMMERS, JammerSetting
 from shared.radio import JammerParams, RadioModel

@@ -17,7 +17,7 @@ from shared.features import Observation
 from shared.orca import orca_velocities, preferred_velocity_toward
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting
-from shared.policy import LevelRaster, LookaheadPolicy, RadioMap, RasterMap
+from shared.policy import MAP_SPACING_M, LevelRaster, LookaheadPolicy, RadioMap, RasterMap
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 from world_sim.core import VectorWorld, episode_seed
@@ -31,9 +31,6 @@ def fleet_observation(world: VectorWorld) -> Observation:
         world.position, world.velocity, world.heading, world.destination, world.radius,
         world.max_speed, world.level, world.below_steps, world.active, world.steps,
     )
-
-
-MAP_SPACING_M = 0.5  # raster spacing of the lookahead's maps: well below a UAV's radius
 
 
 class RasterMaps:

@@ -33,9 +33,9 @@ import torch
 from torch.nn import functional
 
 from cloud_service.sinr_memory import SinrMemory, Uploads
-from shared.measurements import MeasurementBatch, scenario_features
+from shared.measurements import MeasurementBatch, predict_levels, scenario_features
 from shared.networks import SinrMapNetwork, sha256, to_bytes
-from shared.policy import LevelRaster
+from shared.policy import MAP_SPACING_M, LevelRaster, sinr_network_raster
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 
@@ -50,7 +50,6 @@ FINAL_LR = 1e-5
 TARGET_ACCURACY = 0.97  # the accuracy bar the online map is held to on fresh measurements
 FRESH_MEASUREMENTS = 20_000  # scored after fitting: +-0.1 point on an accuracy near 98 %
 _EVAL_EVERY = 100  # steps between held-out checks (early stop on target accuracy)
-_PREDICT_CHUNK = 65_536
 
 
 def simulated_measurements(
@@ -208,33 +207,9 @@ def fit_sinr_map(
     return result.network, figures
 
 
-def predict_levels(network: SinrMapNetwork, features: np.ndarray | torch.Tensor) -> np.ndarray:
-    """Predicted level (argmax of the logits) for features of shape (..., F)."""
-    flat = torch.as_tensor(np.asarray(features, dtype=np.float32))
-    shape = flat.shape[:-1]
-    flat = flat.reshape(-1, flat.shape[-1])
-    out = np.empty(flat.shape[0], dtype=np.int64)
-    # No mode switch: the network has no dropout or batch norm, and the one in service may be
-    # read by several threads at once.
-    with torch.inference_mode():
-        for start in range(0, flat.shape[0], _PREDICT_CHUNK):
-            block = flat[start : start + _PREDICT_CHUNK]
-            out[start : start + len(block)] = network(block).argmax(-1).numpy()
-    return out.reshape(shape)
-
-
 def accuracy_of(network: SinrMapNetwork, features, levels) -> float:
     predicted = predict_levels(network, features)
     return float((predicted == np.asarray(levels)).mean())
-
-
-def level_raster(network: SinrMapNetwork, scenario: Scenario, spacing: float) -> LevelRaster:
-    """The network's map sampled on the lookahead's grid (a LevelRaster)."""
-
-    def levels(grid: np.ndarray) -> np.ndarray:
-        return predict_levels(network, scenario_features(scenario, grid))
-
-    return LevelRaster.sample(scenario, levels, spacing)
 
 
 # -- change detection ---------------------------------------------------------------------------
@@ -418,8 +393,10 @@ class OnlineSinrMapper:
         one and swaps it in, so a caller may keep using what it got."""
         return self._network
 
-    def map_raster(self, scenario: Scenario | None = None, spacing: float = 1.0) -> LevelRaster:
-        return level_raster(self._network, scenario or self.scenario, spacing)
+    def map_raster(
+        self, scenario: Scenario | None = None, spacing: float = MAP_SPACING_M
+    ) -> LevelRaster:
+        return sinr_network_raster(self._network, scenario or self.scenario, spacing)
 
     def ingest(self, uploads: Uploads) -> IngestReport:
         stored, duplicates = self.memory.store(uploads)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jamnav.cli_runtime import register as register_runtime
 from shared.radio import RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario
 from shared.shipped import EXTENDED_VALUE_NET, SINR_MAP_NO_JAMMER, VALUE_NET
@@ -163,8 +164,7 @@ def cmd_sinr(args: argparse.Namespace) -> int:
 def _sinr_from_model(args: argparse.Namespace) -> int:
     """Levels predicted by a SINR-map network, in the shape of the true-map query; the
     network predicts levels only, so sinr_db and serving_gbs are null."""
-    from cloud_service.sinr_mapping import predict_levels
-    from shared.measurements import scenario_features
+    from shared.measurements import predict_levels, scenario_features
 
     if args.jammer or args.no_jammer:
         raise UsageError("--model: the network is the map of the jammer it was trained for; "
@@ -516,6 +516,7 @@ def build_parser() -> argparse.ArgumentParser:
     online.add_argument("--seed", type=int, default=0)
     online.add_argument("--out", required=True, metavar="FILE.png")
     online.set_defaults(handler=cmd_online_map)
+    register_runtime(commands)
     return parser
 
 

@@ -16,6 +16,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from shared.scenario import Scenario
@@ -225,3 +226,21 @@ class MeasurementSpec:
         if rejected:
             raise ValueError(f"measurement refused: {next(iter(rejected))}")
         return batch.records()[0]
+
+
+_PREDICT_CHUNK = 65_536
+
+
+def predict_levels(network: torch.nn.Module, features: np.ndarray | torch.Tensor) -> np.ndarray:
+    """Predicted level (argmax of the logits) for features of shape (..., F)."""
+    flat = torch.as_tensor(np.asarray(features, dtype=np.float32))
+    shape = flat.shape[:-1]
+    flat = flat.reshape(-1, flat.shape[-1])
+    out = np.empty(flat.shape[0], dtype=np.int64)
+    # No mode switch: the network has no dropout or batch norm, and the one in service may be
+    # read by several threads at once.
+    with torch.inference_mode():
+        for start in range(0, flat.shape[0], _PREDICT_CHUNK):
+            block = flat[start : start + _PREDICT_CHUNK]
+            out[start : start + len(block)] = network(block).argmax(-1).numpy()
+    return out.reshape(shape)

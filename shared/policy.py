@@ -17,6 +17,7 @@ import torch
 
 from shared.features import MethodOptions, Observation, joint_state
 from shared.kinematics import ActionSet, closest_approach, velocity_of
+from shared.measurements import predict_levels, scenario_features
 from shared.networks import ValueNetwork
 from shared.radio import JammerParams, RadioModel
 from shared.rewards import RewardModel, smallest_gaps
@@ -33,6 +34,9 @@ class RadioMap(Protocol):
     def route_distance(self, xy: np.ndarray, destination: np.ndarray) -> np.ndarray:
         """Distance along the map's connected route from ``xy`` (N, ..., 2) to each row's
         destination (N, 2); read only by the extended method."""
+
+
+MAP_SPACING_M = 0.5  # raster spacing of the lookahead's maps: well below a UAV's radius
 
 
 class TrueMap:
@@ -87,6 +91,15 @@ class LevelRaster:
             self._routes = RouteGrid(covered, self.x0, self.y0, self.spacing * stride,
                                      scenario.policy.route_uncovered_cost)
         return self._routes
+
+
+def sinr_network_raster(
+    network: torch.nn.Module, scenario: Scenario, spacing: float = MAP_SPACING_M
+) -> LevelRaster:
+    """A SINR-mapping network's map sampled on the lookahead's grid."""
+    return LevelRaster.sample(
+        scenario, lambda grid: predict_levels(network, scenario_features(scenario, grid)), spacing
+    )
 
 
 class RasterMap:

@@ -77,7 +77,8 @@ def test_batched_decisions_equal_one_by_one(scenario):
 
 
 def test_raster_map_agrees_with_the_exact_map(scenario):
-    from cloud_service.rollout import MAP_SPACING_M, perfect_maps
+    from cloud_service.rollout import perfect_maps
+    from shared.policy import MAP_SPACING_M
     from world_sim.core import VectorWorld
 
     world = VectorWorld(scenario, 2, 2)

@@ -19,7 +19,6 @@ from cloud_service.sinr_mapping import (
     RetrainConfig,
     accuracy_of,
     fit_sinr_map,
-    predict_levels,
     simulated_measurements,
 )
 from cloud_service.sinr_memory import SinrMemory
@@ -29,6 +28,7 @@ from shared.measurements import (
     MeasurementBatch,
     MeasurementSpec,
     gbs_features,
+    predict_levels,
     scenario_features,
 )
 from shared.networks import from_bytes

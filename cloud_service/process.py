@@ -1,0 +1,294 @@
+"""The cloud process: serves the latest weights of both networks and keeps the SINR map current.
+
+- The value network and the SINR map are each a queryable (the latest version, for agents
+  that start) plus a publication on every new version.
+- Measurement uploads go into the replay memory through the online SINR mapper, which watches
+  the map's accuracy, detects jammer changes and retrains in its own worker; each new version
+  is saved in the run directory and published, with events.
+- ``--map perfect`` and ``--map outdated`` replace the learned map, for comparison: the true
+  map of the current jammer (followed through the world's ``jammer_changed`` events) or the
+  map without any jammer, both as rasters.
+
+Zenoh callbacks only queue what arrives; one worker thread does the storing and learning.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import queue
+import re
+import sys
+import threading
+import time
+from pathlib import Path
+
+import torch
+
+from cloud_service.rollout import RasterMaps
+from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights, RetrainConfig
+from cloud_service.sinr_memory import SinrMemory
+from shared import bus
+from shared.measurements import MeasurementSpec
+from shared.messages import (
+    ChangeDetected,
+    JammerChanged,
+    JammerInfo,
+    MapMode,
+    MeasurementUpload,
+    ProcessStatus,
+    RasterGrid,
+    RetrainFailed,
+    SinrMap,
+    SinrWeightsPublished,
+    ValueWeights,
+    encode,
+)
+from shared.networks import WeightsError, load_network, sha256
+from shared.radio import JammerParams, RadioModel
+from shared.scenario import Scenario, ScenarioError, load_scenario
+from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET
+from shared.topics import Topics, add_bus_arguments, endpoint_from
+
+ROLE = "cloud"
+_VERSION_FILE = re.compile(r"^sinr_map_v(\d+)\.safetensors$")
+
+
+def raster_map(scenario: Scenario, maps: RasterMaps, mode: MapMode, version: int,
+               jammer: JammerInfo | None) -> SinrMap:
+    """The true (``perfect``) or no-jammer (``outdated``) map as the lookahead's raster."""
+    params = None
+    if mode == "perfect" and jammer is not None:
+        params = JammerParams(jammer.x, jammer.y, jammer.power_w, jammer.height_m)
+    raster = maps.raster(params)
+    data = raster.levels.tobytes()
+    rows, cols = raster.levels.shape
+    return SinrMap(version=version, mode=mode, sha256=sha256(data), data=data,
+                   grid=RasterGrid(x0=raster.x0, y0=raster.y0, spacing=raster.spacing,
+                                   rows=rows, cols=cols))
+
+
+def latest_saved(directory: Path) -> Path | None:
+    """The newest SINR map a previous run of this cloud published (to carry on after it)."""
+    versions = [(int(m.group(1)), p) for p in directory.glob("sinr_map_v*.safetensors")
+                if (m := _VERSION_FILE.match(p.name))]
+    return max(versions)[1] if versions else None
+
+
+class CloudService:
+    def __init__(self, session, topics: Topics, scenario: Scenario, mode: MapMode,
+                 run_dir: Path, log: logging.Logger, *, value_net: Path = VALUE_NET,
+                 sinr_net: Path = SINR_MAP_NO_JAMMER, jammer: JammerInfo | None = None,
+                 retrain: RetrainConfig | None = None):
+        self.session, self.topics, self.scenario, self.mode, self.log = (
+            session, topics, scenario, mode, log)
+        self.maps_dir = run_dir / "sinr_maps"
+        self.maps_dir.mkdir(parents=True, exist_ok=True)
+        self.dropped = bus.Dropped(log)
+        self.tasks: queue.SimpleQueue = queue.SimpleQueue()
+        self._lock = threading.Lock()  # guards the two current messages
+        self.value = self._value_weights(value_net)
+        self.memory = SinrMemory(run_dir / "cloud" / "memory.sqlite", MeasurementSpec.of(scenario))
+        self.mapper: OnlineSinrMapper | None = None
+        self._events_seen = 0
+        if mode == "online":
+            self.sinr = self._start_mapper(sinr_net, retrain)
+        else:
+            self.raster_maps = RasterMaps(scenario)
+            self.sinr = raster_map(scenario, self.raster_maps, mode, 1, jammer)
+        self.value_pub = bus.reliable_publisher(session, topics.value_weights)
+        self.sinr_pub = bus.reliable_publisher(session, topics.sinr_map)
+        # Agents that outlived a restart of the cloud (and missed what it published while it
+        # was down) catch up; agents that start later ask the queryables.
+        self.value_pub.put(encode(self.value))
+        self.sinr_pub.put(encode(self.sinr))
+        self._declared = [
+            session.declare_queryable(topics.value_weights, self._serve_value),
+            session.declare_queryable(topics.sinr_map, self._serve_sinr),
+            bus.subscribe(session, topics.measurements("*"), MeasurementUpload, self.tasks.put,
+                          self.dropped),
+            bus.serve_status(session, topics, ROLE, 0, self.status),
+        ]
+        if mode == "perfect":
+            self._declared.append(bus.subscribe(session, topics.event("jammer_changed"),
+                                                JammerChanged, self.tasks.put, self.dropped))
+        self._declared.append(bus.declare_alive(session, topics, ROLE, 0))
+
+    def _value_weights(self, path: Path) -> ValueWeights:
+        """The value network to serve, checked as an agent will check it; its card may carry
+        a version, so that a replaced file reaches running agents."""
+        _, card = load_network(path, {"kind": "value"})
+        data = path.read_bytes()
+        return ValueWeights(version=int(card.get("version", 1)), sha256=sha256(data), data=data)
+
+    def _start_mapper(self, sinr_net: Path, retrain: RetrainConfig | None) -> SinrMap:
+        spec = MeasurementSpec.of(self.scenario)
+        path = latest_saved(self.maps_dir) or sinr_net
+        network, card = load_network(path, {"kind": "sinr_map", "input_size": spec.feature_size,
+                                            "levels": spec.level_count})
+        accuracy = card.get("accuracy")
+        if not isinstance(accuracy, int | float):
+            raise WeightsError(f"{path}: its card states no accuracy")
+        version = int(card.get("version", 0))
+        self.mapper = OnlineSinrMapper(self.scenario, self.memory, network, float(accuracy),
+                                       publish=self._on_retrained, retrain=retrain,
+                                       version=version)
+        data = path.read_bytes()
+        return SinrMap(version=version, mode="online", sha256=sha256(data), data=data,
+                       accuracy=float(accuracy))
+
+    # -- zenoh threads ---------------------------------------------------------------------
+    def _serve_value(self, query) -> None:
+        query.reply(self.topics.value_weights, encode(self.value))
+
+    def _serve_sinr(self, query) -> None:
+        with self._lock:
+            current = self.sinr
+        query.reply(self.topics.sinr_map, encode(current))
+
+    def status(self) -> ProcessStatus:
+        with self._lock:
+            current = self.sinr
+        details = {"map": self.mode, "stored": self.memory.count(),
+                   "map_accuracy": current.accuracy}
+        return ProcessStatus(role=ROLE, ident="0", pid=os.getpid(), t=time.time(),
+                             value_version=self.value.version, sinr_version=current.version,
+                             dropped=self.dropped.as_dict(), details=details)
+
+    # -- worker ----------------------------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            try:
+                tasks = [self.tasks.get(timeout=0.2)]
+            except queue.Empty:
+                continue
+            while not self.tasks.empty():
+                tasks.append(self.tasks.get_nowait())
+            uploads = [m for task in tasks if isinstance(task, MeasurementUpload)
+                       for m in task.measurements]
+            if uploads:
+                self._ingest(uploads)
+            for task in tasks:
+                if isinstance(task, JammerChanged):
+                    self._follow_jammer(task)
+        if self.mapper is not None:
+            self.mapper.close()
+        else:
+            self.memory.close()
+
+    def _ingest(self, uploads) -> None:
+        if self.mapper is None:
+            self.memory.store(uploads)
+            return
+        self.mapper.ingest(uploads)
+        events = self.mapper.events
+        for event in events[self._events_seen:]:
+            if event["type"] == "change_detected":
+                self._publish_event(ChangeDetected(
+                    t=event["t"], source=ROLE, version=event["version"],
+                    accuracy=event["accuracy"], change_time=event.get("change_time")))
+                self.log.info("jammer change detected (map v%d at %.1f%% on the last window)",
+                              event["version"], 100 * event["accuracy"])
+            elif event["type"] == "retrain_failed":
+                self._publish_event(RetrainFailed(t=event["t"], source=ROLE,
+                                                  version=event["version"],
+                                                  error=event["error"][:2000]))
+        self._events_seen = len(events)
+
+    def _follow_jammer(self, change: JammerChanged) -> None:
+        with self._lock:
+            version = self.sinr.version + 1
+        update = raster_map(self.scenario, self.raster_maps, self.mode, version, change.jammer)
+        with self._lock:
+            self.sinr = update
+        self.sinr_pub.put(encode(update))
+        self.log.info("true map v%d published for jammer %s", version, change.jammer)
+
+    def _on_retrained(self, weights: PublishedWeights) -> None:
+        """Runs on the mapper's retraining thread."""
+        path = self.maps_dir / f"sinr_map_v{weights.version}.safetensors"
+        path.write_bytes(weights.data)
+        path.with_suffix(".json").write_text(json.dumps({
+            "version": weights.version, "accuracy": weights.accuracy, "sha256": weights.sha256,
+            "published": time.time()}, indent=2) + "\n", encoding="utf-8")
+        update = SinrMap(version=weights.version, mode="online", sha256=weights.sha256,
+                         data=weights.data, accuracy=weights.accuracy)
+        with self._lock:
+            self.sinr = update
+        self.sinr_pub.put(encode(update))
+        self._publish_event(SinrWeightsPublished(
+            t=time.time(), source=ROLE, version=weights.version, accuracy=update.accuracy,
+            sha256=weights.sha256, path=str(path.resolve())))
+        self.log.info("SINR map v%d published (held-out accuracy %.1f%%)", weights.version,
+                      100 * weights.accuracy)
+
+    def _publish_event(self, event) -> None:
+        bus.publish_event(self.session, self.topics, event)
+
+
+# -- process shell ------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m cloud_service.process", description=__doc__)
+    add_bus_arguments(parser)
+    parser.add_argument("--scenario", default=None)
+    parser.add_argument("--map", choices=("online", "perfect", "outdated"), default="online")
+    parser.add_argument("--run-dir", default="runs/cloud", metavar="DIR",
+                        help="replay memory and published SINR maps")
+    parser.add_argument("--value-net", default=str(VALUE_NET), metavar="PATH")
+    parser.add_argument("--sinr-net", default=str(SINR_MAP_NO_JAMMER), metavar="PATH",
+                        help="initial SINR map (online)")
+    parser.add_argument("--retrain-samples", type=int, default=None, metavar="N",
+                        help="post-change measurements a retraining waits for")
+    jam = parser.add_mutually_exclusive_group()
+    jam.add_argument("--jammer", metavar="X,Y,P[,H]", help="initial jammer (map perfect)")
+    jam.add_argument("--no-jammer", action="store_true")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    torch.set_num_threads(1)
+    log = bus.setup_logging(ROLE)
+    try:
+        scenario = load_scenario(args.scenario)
+        jammer = None
+        if not args.no_jammer:
+            default = RadioModel.jammer_of(scenario)
+            if args.jammer is not None:
+                jammer = JammerInfo.parse(args.jammer, scenario.jammer.height_m)
+            elif default is not None:
+                jammer = JammerInfo(x=default.x, y=default.y, power_w=default.power_w,
+                                    height_m=default.height_m)
+        retrain = None
+        if args.retrain_samples is not None:
+            if args.retrain_samples < 2:
+                raise ValueError("--retrain-samples must be at least 2")
+            retrain = RetrainConfig(min_samples=args.retrain_samples)
+        topics = Topics(args.prefix)
+        endpoint = endpoint_from(args.endpoint)
+    except (ScenarioError, ValueError, bus.BusError) as exc:
+        print(f"cloud: error: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    bus.stop_on_signals(stop)
+    try:
+        session = bus.open_session("client", endpoint)
+    except bus.BusError as exc:
+        print(f"cloud: error: {exc}", file=sys.stderr)
+        return 1
+    with session:
+        try:
+            cloud = CloudService(session, topics, scenario, args.map, Path(args.run_dir), log,
+                                 value_net=Path(args.value_net), sinr_net=Path(args.sinr_net),
+                                 jammer=jammer, retrain=retrain)
+        except (WeightsError, ValueError) as exc:
+            print(f"cloud: error: {exc}", file=sys.stderr)
+            return 2
+        cloud.run(stop)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,253 @@
+"""The runtime's sub-commands of ``jamnav``: ``up``, ``jammer {set,off,show}``, ``status`` and
+``router``. ``register`` adds them to the parser of ``jamnav/cli.py``.
+
+Every command finds the running system through its router: ``--endpoint``, else
+$JAMNAV_ENDPOINT, else tcp/127.0.0.1:7447 (where ``jamnav up`` puts it). A mistake in the
+arguments, or a jammer command the world refuses, ends with one line on stderr and exit 2; a
+system that cannot be reached, with exit 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import threading
+import time
+from pathlib import Path
+
+from shared.scenario import ScenarioError, load_scenario
+from shared.topics import Topics, add_bus_arguments, endpoint_from
+
+DEFAULT_SWAP_TO = "25,-10,1"  # Table I's second setting
+
+
+class _Refused(Exception):
+    """Bad input (exit 2)."""
+
+
+def _fail(message: str, code: int) -> int:
+    print(f"jamnav: error: {message}", file=sys.stderr)
+    return code
+
+
+def _guarded(handler):
+    """One-line errors instead of tracebacks: exit 2 for bad input, 1 for an absent system."""
+
+    def run(args: argparse.Namespace) -> int:
+        from shared import bus
+
+        try:
+            return handler(args)
+        except (_Refused, ScenarioError, ValueError) as exc:
+            return _fail(str(exc), 2)
+        except bus.BusError as exc:
+            return _fail(str(exc), 1)
+
+    return run
+
+
+def _positive(value: float | None, name: str) -> None:
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise _Refused(f"--{name} must be a positive number")
+
+
+# -- up -----------------------------------------------------------------------------------------
+def cmd_up(args: argparse.Namespace) -> int:
+    from jamnav.supervisor import UpConfig, up
+    from shared.messages import JammerInfo
+    from world_sim.process import initial_jammer
+
+    scenario = load_scenario(args.scenario)
+    uavs = scenario.missions.uav_count if args.uavs is None else args.uavs
+    if not 1 <= uavs <= 64:
+        raise _Refused("--uavs must be between 1 and 64")
+    if args.episodes is not None and args.episodes < 1:
+        raise _Refused("--episodes must be at least 1")
+    for name in ("duration", "rate", "deadline", "swap_jammer_at"):
+        _positive(getattr(args, name), name.replace("_", "-"))
+    initial_jammer(scenario, args.jammer, args.no_jammer)
+    if args.swap_to != "off":
+        swap = JammerInfo.parse(args.swap_to, scenario.jammer.height_m)
+        if not scenario.area.contains(swap.x, swap.y):
+            raise _Refused(f"--swap-to {args.swap_to!r}: position outside the area")
+    if args.model is not None and not Path(args.model).is_file():
+        raise _Refused(f"--model {args.model}: no such file")
+    if args.retrain_samples is not None and args.retrain_samples < 2:
+        raise _Refused("--retrain-samples must be at least 2")
+    run_dir = Path(args.run_dir or time.strftime("runs/up-%Y%m%d-%H%M%S"))
+    Topics(args.prefix)  # refuses a malformed prefix before anything starts
+    config = UpConfig(
+        endpoint=endpoint_from(args.endpoint), run_dir=run_dir, prefix=args.prefix,
+        scenario=args.scenario, uavs=uavs, episodes=args.episodes, duration=args.duration,
+        clock="realtime" if args.realtime else "lockstep", rate=args.rate,
+        deadline=args.deadline, map=args.map, jammer=args.jammer, no_jammer=args.no_jammer,
+        seed=args.seed, report=Path(args.report) if args.report else None,
+        swap_at=args.swap_jammer_at, swap_to=args.swap_to,
+        retrain_samples=args.retrain_samples, figures=not args.no_figures,
+        model=Path(args.model) if args.model else None,
+        command="jamnav " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["up"] else "jamnav up",
+    )
+    return up(config, scenario)
+
+
+# -- jammer -------------------------------------------------------------------------------------
+def cmd_jammer(args: argparse.Namespace) -> int:
+    from shared import bus
+    from shared.messages import JammerCommand, JammerReply
+
+    if args.jammer_command == "set":
+        try:
+            command = JammerCommand(action="set", x=args.x, y=args.y, power_w=args.power,
+                                    height_m=args.height)
+        except ValueError:
+            raise _Refused("jammer set: --x, --y, --power and --height must be finite, "
+                           "--power and --height >= 0") from None
+    else:
+        command = JammerCommand(action=args.jammer_command)
+    topics = Topics(args.prefix)
+    with bus.open_session("client", endpoint_from(args.endpoint), 2000) as session:
+        reply = bus.query(session, topics.jammer_control, JammerReply, command)
+    print(json.dumps(reply.model_dump(mode="json")))
+    if not reply.accepted:
+        raise _Refused(f"jammer {args.jammer_command} refused: {reply.reason}")
+    return 0
+
+
+# -- status -------------------------------------------------------------------------------------
+def _describe(status) -> str:
+    d = status.details
+    if status.role == "world":
+        return (f"episode {status.episode} step {status.step}, {d.get('clock')}, "
+                f"{d.get('steps_per_second', 0):.0f} steps/s, {d.get('live_agents')} agents, "
+                f"jammer {d.get('jammer')}, missed deadlines {d.get('missed_deadlines')}"
+                + (", finished" if d.get("finished") else ""))
+    if status.role == "cloud":
+        accuracy = d.get("map_accuracy")
+        return (f"map {d.get('map')} v{status.sinr_version}"
+                + (f" (accuracy {accuracy:.1%})" if isinstance(accuracy, float) else "")
+                + f", value net v{status.value_version}, {d.get('stored')} measurements stored")
+    if status.role == "agent":
+        return (f"value net v{status.value_version}, map v{status.sinr_version}, "
+                f"{d.get('decisions')} decisions (p99 {d.get('decision_p99_us', 0):.0f} us), "
+                f"episode {status.episode} step {status.step}")
+    return ""
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from shared import bus
+    from shared.messages import MessageError, ProcessStatus, decode
+
+    topics = Topics(args.prefix)
+    endpoint = endpoint_from(args.endpoint)
+    with bus.open_session("client", endpoint, 2000) as session:
+        live = sorted(topics.role_and_id(str(r.ok.key_expr))
+                      for r in session.liveliness().get(topics.alive(), timeout=2.0)
+                      if r.ok is not None)
+        statuses = {}
+        for reply in session.get(topics.status(), timeout=2.0):
+            if reply.ok is not None:
+                try:
+                    status = decode(ProcessStatus, reply.ok.payload.to_bytes())
+                except MessageError:
+                    continue
+                statuses[(status.role, status.ident)] = status
+    if not live:
+        raise bus.BusError(f"no live process of {topics.prefix!r} at {endpoint}")
+    if args.json:
+        print(json.dumps([{"role": role, "id": ident, **(
+            statuses[(role, ident)].model_dump(mode="json", exclude={"role", "ident"})
+            if (role, ident) in statuses else {})} for role, ident in live]))
+        return 0
+    order = {"router": 0, "world": 1, "cloud": 2, "agent": 3}
+    for role, ident in sorted(live, key=lambda k: (order.get(k[0], 9), k[0], int(k[1])
+                                                    if k[1].isdigit() else 0)):
+        status = statuses.get((role, ident))
+        pid = status.pid if status else ""
+        print(f"{role + '-' + ident:<12} {pid!s:>7}  live  "
+              f"{_describe(status) if status else ''}".rstrip())
+    return 0
+
+
+# -- router -------------------------------------------------------------------------------------
+def cmd_router(args: argparse.Namespace) -> int:
+    from shared import bus
+
+    endpoint = endpoint_from(args.endpoint)
+    for other in args.connect:
+        endpoint_from(other)
+    topics = Topics(args.prefix)
+    stop = threading.Event()
+    bus.stop_on_signals(stop)
+    with bus.open_session("router", endpoint, routers=tuple(args.connect)) as session:
+        token = bus.declare_alive(session, topics, "router", args.id)
+        print(f"jamnav router listening on {endpoint}", file=sys.stderr, flush=True)
+        stop.wait()
+        token.undeclare()
+    return 0
+
+
+def register(commands) -> None:
+    """Add ``up``, ``jammer``, ``status`` and ``router`` to ``jamnav``'s sub-parsers."""
+    up = commands.add_parser("up", help="run the system: router, world, cloud, one agent per UAV")
+    add_bus_arguments(up)
+    up.add_argument("--scenario", default=None, metavar="NAME|PATH")
+    up.add_argument("--uavs", type=int, default=None, help="UAVs (one agent process each)")
+    length = up.add_mutually_exclusive_group()
+    length.add_argument("--episodes", type=int, default=None, help="stop after K episodes")
+    length.add_argument("--duration", type=float, default=None, metavar="SEC",
+                        help="stop after SEC seconds of flight (default: run until Ctrl-C)")
+    clock = up.add_mutually_exclusive_group()
+    clock.add_argument("--lockstep", action="store_true",
+                       help="each step waits for every agent (default; deterministic)")
+    clock.add_argument("--realtime", action="store_true", help="steps at a fixed rate")
+    up.add_argument("--rate", type=float, default=10.0, help="realtime steps per second")
+    up.add_argument("--deadline", type=float, default=2.0,
+                    help="lockstep: seconds a step waits for the actions")
+    up.add_argument("--map", choices=("online", "perfect", "outdated"), default="online",
+                    help="the agents' SINR map: learned online, true, or without the jammer")
+    jam = up.add_mutually_exclusive_group()
+    jam.add_argument("--jammer", metavar="X,Y,P", help="initial jammer (default: scenario's)")
+    jam.add_argument("--no-jammer", action="store_true")
+    up.add_argument("--swap-jammer-at", type=float, default=None, metavar="SEC",
+                    help="move the jammer over the control topic SEC seconds into the flight")
+    up.add_argument("--swap-to", default=DEFAULT_SWAP_TO, metavar="X,Y,P|off",
+                    help=f"where --swap-jammer-at moves it (default {DEFAULT_SWAP_TO})")
+    up.add_argument("--seed", type=int, default=0)
+    up.add_argument("--model", default=None, metavar="PATH",
+                    help="value network the cloud serves (default: the shipped one)")
+    up.add_argument("--run-dir", default=None, metavar="DIR",
+                    help="logs, report, figures, SINR maps (default runs/up-<time>)")
+    up.add_argument("--report", default=None, metavar="FILE",
+                    help="report JSON (default DIR/report.json)")
+    up.add_argument("--retrain-samples", type=int, default=None, metavar="N",
+                    help="post-change measurements the cloud retrains on (default: mapper's)")
+    up.add_argument("--no-figures", action="store_true", help="skip the trajectory figures")
+    up.set_defaults(handler=_guarded(cmd_up))
+
+    jammer = commands.add_parser("jammer", help="move, switch off or show the running jammer")
+    jammer_commands = jammer.add_subparsers(dest="jammer_command", required=True)
+    jam_set = jammer_commands.add_parser("set", help="place the jammer (applied between steps)")
+    jam_set.add_argument("--x", type=float, required=True, help="metres")
+    jam_set.add_argument("--y", type=float, required=True, help="metres")
+    jam_set.add_argument("--power", type=float, required=True, help="nominal watts")
+    jam_set.add_argument("--height", type=float, default=None,
+                         help="metres (default: the scenario's)")
+    jammer_commands.add_parser("off", help="switch the jammer off")
+    jammer_commands.add_parser("show", help="the jammer in force")
+    for sub in jammer_commands.choices.values():
+        add_bus_arguments(sub)
+        sub.set_defaults(handler=_guarded(cmd_jammer))
+
+    status = commands.add_parser("status", help="live processes, weight versions, step")
+    add_bus_arguments(status)
+    status.add_argument("--json", action="store_true")
+    status.set_defaults(handler=_guarded(cmd_status))
+
+    router = commands.add_parser("router", help="a zenoh router (what `jamnav up` starts)")
+    add_bus_arguments(router)
+    router.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                        help="another host's router to link with (repeatable)")
+    router.add_argument("--id", default="0", help="name in `jamnav status`")
+    router.set_defaults(handler=_guarded(cmd_router))

@@ -1,0 +1,195 @@
+"""The few zenoh helpers every process needs: configuration, opening, receiving, presence, and
+the life cycle of a process with a session. Zenoh is the distributed engine; this module only
+fixes our conventions: one router (per host) and clients, loopback by default, multicast
+scouting off (nothing is discovered by accident) and no scouting delay (a session opens in
+milliseconds instead of half a second).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import signal
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from typing import Literal, TypeVar
+
+import zenoh
+
+from shared.messages import Message, MessageError, ProcessStatus, decode, encode
+from shared.topics import Topics
+
+M = TypeVar("M", bound=Message)
+
+# How long a client keeps trying to reach its router at start: the supervisor starts every
+# process at once, and a restarted router takes a moment to listen again.
+CONNECT_TIMEOUT_MS = 15_000
+CONNECT_RETRY_MS = 100
+
+
+class BusError(RuntimeError):
+    """The bus cannot be reached; the text is one line."""
+
+
+def config(mode: Literal["router", "client"], endpoint: str,
+           connect_timeout_ms: int = CONNECT_TIMEOUT_MS,
+           routers: tuple[str, ...] = ()) -> zenoh.Config:
+    """A router listens on ``endpoint`` (and links to other ``routers``, one per host); a
+    client connects to ``endpoint``."""
+    cfg = zenoh.Config()
+    settings = {
+        "mode": mode,
+        "scouting/multicast/enabled": False,
+        "scouting/delay": 0,
+    }
+    if mode == "router":
+        settings["listen/endpoints"] = [endpoint]
+        if routers:
+            settings["connect/endpoints"] = list(routers)
+    else:
+        settings["connect/endpoints"] = [endpoint]
+        settings["connect/timeout_ms"] = connect_timeout_ms
+        settings["connect/retry"] = {"period_init_ms": CONNECT_RETRY_MS, "period_max_ms": 1000,
+                                     "period_increase_factor": 2}
+    for key, value in settings.items():
+        cfg.insert_json5(key, json.dumps(value))
+    return cfg
+
+
+def open_session(mode: Literal["router", "client"], endpoint: str,
+                 connect_timeout_ms: int = CONNECT_TIMEOUT_MS,
+                 routers: tuple[str, ...] = ()) -> zenoh.Session:
+    """Open a session; close it (``with`` or ``close()``): a process with callback subscribers
+    that exits without closing its session never exits."""
+    cfg = config(mode, endpoint, connect_timeout_ms, routers)
+    try:
+        return zenoh.open(cfg)
+    except zenoh.ZError as exc:
+        what = "listen on" if mode == "router" else "reach a router at"
+        reason = re.sub(r" at /\S+$", "", str(exc).splitlines()[0])
+        raise BusError(f"cannot {what} {endpoint}: {reason}") from None
+
+
+def reliable_publisher(session: zenoh.Session, key: str, express: bool = False
+                       ) -> zenoh.Publisher:
+    """A publisher that blocks rather than drops under congestion: every step, action,
+    upload and event must arrive. ``express`` skips batching, for the lockstep's round trip."""
+    return session.declare_publisher(
+        key, congestion_control=zenoh.CongestionControl.BLOCK, express=express)
+
+
+def publish_event(session: zenoh.Session, topics: Topics, event: Message) -> None:
+    """Publish an event on its own key (``<prefix>/event/<type>``), never dropped."""
+    session.put(topics.event(event.type), encode(event),
+                congestion_control=zenoh.CongestionControl.BLOCK)
+
+
+def wait_matching(publisher: zenoh.Publisher, timeout: float) -> bool:
+    """Wait until someone subscribes to ``publisher``'s key: a put sent before the
+    subscription has reached us may be lost."""
+    deadline = time.monotonic() + timeout
+    while not publisher.matching_status:
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.002)
+    return True
+
+
+def declare_alive(session: zenoh.Session, topics: Topics, role: str, ident: int | str
+                  ) -> zenoh.LivelinessToken:
+    """Presence of a process; keep the returned token referenced for as long as it lives."""
+    return session.liveliness().declare_token(topics.alive(role, ident))
+
+
+# -- receiving ----------------------------------------------------------------------------------
+class Dropped:
+    """Invalid messages refused, per topic (key expression of the subscription)."""
+
+    def __init__(self, log: logging.Logger):
+        self._counts: Counter = Counter()
+        self._lock = threading.Lock()
+        self._log = log
+
+    def add(self, topic: str, reason: str) -> None:
+        with self._lock:
+            self._counts[topic] += 1
+            count = self._counts[topic]
+        if count <= 3 or count % 1000 == 0:  # a flood must not flood the log
+            self._log.warning("refused message #%d on %s: %s", count, topic, reason)
+
+    def as_dict(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._counts)
+
+
+def subscribe(session: zenoh.Session, key: str, kind: type[M], on_message: Callable[[M], None],
+              dropped: Dropped) -> zenoh.Subscriber:
+    """Subscribe to ``key`` and hand each valid ``kind`` message to ``on_message``, which runs
+    on zenoh's delivery thread and must return at once (store it or queue it)."""
+
+    def callback(sample: zenoh.Sample) -> None:
+        try:
+            message = decode(kind, sample.payload.to_bytes())
+        except MessageError as exc:
+            dropped.add(key, str(exc))
+            return
+        on_message(message)
+
+    return session.declare_subscriber(key, callback)
+
+
+def query(session: zenoh.Session, key: str, kind: type[M], payload: Message | None = None,
+          timeout: float = 2.0) -> M:
+    """The first valid reply of a query; BusError (one line) if none came."""
+    replies = session.get(key, payload=None if payload is None else encode(payload),
+                          timeout=timeout)
+    problem = "no reply (is the system running?)"
+    for reply in replies:
+        if reply.ok is None:
+            problem = f"error reply: {reply.err.payload.to_bytes().decode(errors='replace')}"
+            continue
+        try:
+            return decode(kind, reply.ok.payload.to_bytes())
+        except MessageError as exc:
+            problem = f"invalid reply: {exc}"
+    raise BusError(f"{key}: {problem}")
+
+
+def serve_status(session: zenoh.Session, topics: Topics, role: str, ident: int | str,
+                 snapshot: Callable[[], ProcessStatus]) -> zenoh.Queryable:
+    """Answer status queries with ``snapshot()`` (must be quick: it runs on zenoh's thread)."""
+    key = topics.status(role, ident)
+
+    def reply(q: zenoh.Query) -> None:
+        q.reply(key, encode(snapshot()))
+
+    return session.declare_queryable(key, reply)
+
+
+# -- process lifecycle --------------------------------------------------------------------------
+def setup_logging(name: str) -> logging.Logger:
+    logging.basicConfig(stream=sys.stderr, level=logging.INFO,
+                        format=f"%(asctime)s {name} %(levelname)s %(message)s")
+    return logging.getLogger(name)
+
+
+def stop_on_signals(stop: threading.Event) -> None:
+    """SIGTERM and SIGINT ask the process to stop; the main loop sees ``stop`` and closes its
+    session on the way out. If the parent goes away (a supervisor killed with SIGKILL), stop
+    too, so that no child outlives it."""
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    parent = os.getppid()
+
+    def watch_parent() -> None:
+        while not stop.wait(0.5):
+            if os.getppid() != parent:
+                stop.set()
+
+    if parent > 1:
+        threading.Thread(target=watch_parent, name="parent-watch", daemon=True).start()

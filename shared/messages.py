@@ -1,0 +1,403 @@
+"""Every message on the bus: pydantic models, msgpack on the wire, validated on receipt.
+
+``encode``, ``decode`` and ``decode_event`` are the only way in and out of the wire format.
+Decoding refuses, with a one-line ``MessageError``, anything oversized, not msgpack, or outside
+the model's rules (unknown fields, non-finite numbers, out-of-range values, inconsistent
+lengths, a weights payload whose sha256 does not match). msgpack carries plain data only:
+nothing received is ever turned into code or arbitrary objects (no pickle; msgpack extension
+types are refused by the models).
+
+The topic each message travels on is in ``shared.topics``; ``docs/topics.md`` lists both.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from typing import Annotated, Any, ClassVar, Literal, TypeVar
+
+import msgpack
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
+
+from shared.features import Observation
+from shared.measurements import Measurement
+from shared.outcomes import Outcome
+
+MAX_UAVS = 64  # the scenario's own limit on missions.uav_count
+MAX_WEIGHTS_BYTES = 8 * 2**20
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+Count = Annotated[int, Field(ge=0, le=2**62)]
+UavId = Annotated[int, Field(ge=0, lt=MAX_UAVS)]
+Level = Annotated[int, Field(ge=0, le=127)]
+XY = tuple[Finite, Finite]
+Text = Annotated[str, Field(min_length=1, max_length=200)]
+Digest = Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
+Accuracy = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+StatusLabel = Literal["active", "success", "disconnection", "collision", "timeout"]
+OutcomeLabel = Literal["success", "disconnection", "collision", "timeout"]
+Role = Literal["world", "cloud", "agent"]  # the processes that answer status queries
+Clock = Literal["lockstep", "realtime"]
+MapMode = Literal["online", "perfect", "outdated"]
+
+
+class MessageError(ValueError):
+    """A payload that is not a valid message; the text is one line."""
+
+
+class Message(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    max_bytes: ClassVar[int] = 64 * 1024
+
+
+M = TypeVar("M", bound=Message)
+
+
+# -- world <-> agents ---------------------------------------------------------------------------
+class AgentObservation(Message):
+    """What UAV ``uav`` observes at a step: its own state and mission, and the others'
+    position, velocity and size (never their destinations). One row of ``Observation``."""
+
+    episode: Count
+    step: Count
+    uav: UavId
+    position: XY
+    velocity: XY
+    heading: Finite
+    destination: XY
+    radius: Positive
+    max_speed: Positive
+    level: Level
+    below_steps: Count
+    others_position: list[XY] = Field(max_length=MAX_UAVS - 1)
+    others_velocity: list[XY] = Field(max_length=MAX_UAVS - 1)
+    others_radius: list[Positive] = Field(max_length=MAX_UAVS - 1)
+    others_present: list[bool] = Field(max_length=MAX_UAVS - 1)
+
+    @model_validator(mode="after")
+    def _same_length(self) -> AgentObservation:
+        lengths = {len(self.others_position), len(self.others_velocity),
+                   len(self.others_radius), len(self.others_present)}
+        if len(lengths) != 1:
+            raise ValueError("others_* lists differ in length")
+        return self
+
+    @classmethod
+    def of_row(cls, observation: Observation, row: int, episode: int, uav: int
+               ) -> AgentObservation:
+        o = observation
+        return cls.model_construct(
+            episode=episode, step=int(o.step[row]), uav=uav,
+            position=tuple(o.position[row].tolist()), velocity=tuple(o.velocity[row].tolist()),
+            heading=float(o.heading[row]), destination=tuple(o.destination[row].tolist()),
+            radius=float(o.radius[row]), max_speed=float(o.max_speed[row]),
+            level=int(o.level[row]), below_steps=int(o.below_steps[row]),
+            others_position=[tuple(p) for p in o.others_position[row].tolist()],
+            others_velocity=[tuple(v) for v in o.others_velocity[row].tolist()],
+            others_radius=o.others_radius[row].tolist(),
+            others_present=o.others_present[row].tolist(),
+        )
+
+    def observation(self) -> Observation:
+        """The one-row ``Observation`` the policy reads, with the world's dtypes, so that the
+        agent computes exactly what an in-process evaluation computes for this UAV."""
+        others = len(self.others_present)
+        return Observation(
+            position=np.array([self.position], dtype=np.float64),
+            velocity=np.array([self.velocity], dtype=np.float64),
+            heading=np.array([self.heading], dtype=np.float64),
+            destination=np.array([self.destination], dtype=np.float64),
+            radius=np.array([self.radius], dtype=np.float64),
+            max_speed=np.array([self.max_speed], dtype=np.float64),
+            level=np.array([self.level], dtype=np.int8),
+            below_steps=np.array([self.below_steps], dtype=np.int64),
+            step=np.array([self.step], dtype=np.int64),
+            others_position=np.array(self.others_position, dtype=np.float64).reshape(1, others, 2),
+            others_velocity=np.array(self.others_velocity, dtype=np.float64).reshape(1, others, 2),
+            others_radius=np.array(self.others_radius, dtype=np.float64).reshape(1, others),
+            others_present=np.array(self.others_present, dtype=bool).reshape(1, others),
+        )
+
+
+class Action(Message):
+    """A UAV's command for one step (clipped by the world to the kinematic limits)."""
+
+    episode: Count
+    step: Count
+    uav: UavId
+    speed: NonNegative
+    heading: Finite
+
+
+class WorldState(Message):
+    """The whole fleet after a step, for monitoring: every list is in UAV order."""
+
+    episode: Count
+    step: Count
+    clock: Clock
+    t: Finite  # unix seconds
+    position: list[XY] = Field(max_length=MAX_UAVS)
+    velocity: list[XY] = Field(max_length=MAX_UAVS)
+    sinr_db: list[Finite] = Field(max_length=MAX_UAVS)
+    level: list[Level] = Field(max_length=MAX_UAVS)
+    status: list[StatusLabel] = Field(max_length=MAX_UAVS)
+
+
+# -- measurements and weights -------------------------------------------------------------------
+class MeasurementUpload(Message):
+    """A small batch of one UAV's measurements (the cloud screens each record)."""
+
+    max_bytes: ClassVar[int] = 512 * 1024
+    uav: UavId
+    measurements: list[Measurement] = Field(min_length=1, max_length=256)
+
+
+class RasterGrid(Message):
+    """Where an int8 level raster lies: node (0, 0) at (x0, y0), rows along y."""
+
+    x0: Finite
+    y0: Finite
+    spacing: Positive
+    rows: int = Field(ge=2, le=4096)
+    cols: int = Field(ge=2, le=4096)
+
+
+class _Weights(Message):
+    max_bytes: ClassVar[int] = MAX_WEIGHTS_BYTES + 4096
+    version: Count
+    sha256: Digest
+    data: bytes = Field(min_length=1, max_length=MAX_WEIGHTS_BYTES)
+
+    @model_validator(mode="after")
+    def _digest(self):
+        if hashlib.sha256(self.data).hexdigest() != self.sha256:
+            raise ValueError("sha256 digest does not match the data")
+        return self
+
+
+class ValueWeights(_Weights):
+    """The value network as safetensors bytes (architecture in the header metadata)."""
+
+
+class SinrMap(_Weights):
+    """A version of the SINR map: with ``grid`` unset, ``data`` is the SINR-mapping network as
+    safetensors (``online``); with ``grid`` set, it is an int8 level raster, row-major
+    (the true map for ``perfect``, the no-jammer map for ``outdated``)."""
+
+    mode: MapMode
+    accuracy: Accuracy | None = None
+    grid: RasterGrid | None = None
+
+    @model_validator(mode="after")
+    def _raster_size(self) -> SinrMap:
+        if self.grid is not None and len(self.data) != self.grid.rows * self.grid.cols:
+            raise ValueError("raster data length differs from rows x cols")
+        return self
+
+    def levels(self) -> np.ndarray:
+        grid = self.grid
+        return np.frombuffer(self.data, dtype=np.int8).reshape(grid.rows, grid.cols)
+
+
+# -- jammer control -----------------------------------------------------------------------------
+class JammerInfo(Message):
+    x: Finite
+    y: Finite
+    power_w: NonNegative
+    height_m: NonNegative
+
+    @classmethod
+    def parse(cls, text: str, default_height: float) -> JammerInfo:
+        """From "X,Y,P" or "X,Y,P,H" (metres, watts); ValueError with a one-line reason."""
+        parts = text.split(",")
+        if len(parts) not in (3, 4):
+            raise ValueError(f"jammer {text!r}: expected X,Y,P or X,Y,P,H")
+        try:
+            values = [float(part) for part in parts] + [default_height] * (4 - len(parts))
+            return cls(x=values[0], y=values[1], power_w=values[2], height_m=values[3])
+        except (ValueError, ValidationError):
+            raise ValueError(f"jammer {text!r}: expected finite numbers, power and height "
+                             ">= 0") from None
+
+
+class JammerCommand(Message):
+    """Payload of a query on the control key; no payload means ``show``."""
+
+    action: Literal["set", "off", "show"]
+    x: Finite | None = None
+    y: Finite | None = None
+    power_w: NonNegative | None = None
+    height_m: NonNegative | None = None
+
+    @model_validator(mode="after")
+    def _complete(self) -> JammerCommand:
+        given = [v is not None for v in (self.x, self.y, self.power_w, self.height_m)]
+        if self.action == "set" and not all(given[:3]):
+            raise ValueError("set needs x, y and power_w")
+        if self.action != "set" and any(given):
+            raise ValueError(f"{self.action} takes no position or power")
+        return self
+
+
+class JoinReply(Message):
+    """The world's answer to an agent asking which UAV to fly (agents started as replicas)."""
+
+    uav: UavId
+
+
+class JammerReply(Message):
+    accepted: bool
+    reason: str | None = Field(default=None, max_length=500)
+    jammer: JammerInfo | None  # in force from the next step (None: no jammer)
+    episode: Count
+    step: Count
+
+
+# -- events -------------------------------------------------------------------------------------
+class _Event(Message):
+    t: Finite  # unix seconds
+    source: Text
+
+
+class JammerChanged(_Event):
+    type: Literal["jammer_changed"] = "jammer_changed"
+    jammer: JammerInfo | None
+    episode: Count
+    step: Count
+
+
+class ChangeDetected(_Event):
+    type: Literal["change_detected"] = "change_detected"
+    version: Count  # the map version found outdated
+    accuracy: Accuracy  # of that map on the window that fired
+    change_time: Finite | None = None  # the detector's estimate of when the change happened
+
+
+class SinrWeightsPublished(_Event):
+    type: Literal["sinr_weights_published"] = "sinr_weights_published"
+    version: Count
+    accuracy: Accuracy | None
+    sha256: Digest
+    path: str = Field(max_length=4096)  # the safetensors file of this version (cloud's disk)
+
+
+class RetrainFailed(_Event):
+    type: Literal["retrain_failed"] = "retrain_failed"
+    version: Count
+    error: str = Field(max_length=2000)
+
+
+class UavOutcomes(_Event):
+    type: Literal["uav_outcomes"] = "uav_outcomes"
+    episode: Count
+    seed: Count
+    steps: Count
+    outcomes: list[OutcomeLabel] = Field(min_length=1, max_length=MAX_UAVS)
+
+
+class RunFinished(_Event):
+    type: Literal["run_finished"] = "run_finished"
+    episodes: Count
+    steps: Count
+    seconds: NonNegative
+    steps_per_second: NonNegative
+    missed_deadlines: Count
+
+
+Event = Annotated[
+    JammerChanged | ChangeDetected | SinrWeightsPublished | RetrainFailed | UavOutcomes
+    | RunFinished,
+    Field(discriminator="type"),
+]
+_EVENTS: TypeAdapter[Event] = TypeAdapter(Event)
+
+
+# -- status -------------------------------------------------------------------------------------
+Scalar = int | float | str | bool | None
+
+
+class ProcessStatus(Message):
+    """A process's answer to a status query."""
+
+    role: Role
+    ident: Text
+    pid: int = Field(ge=0)
+    t: Finite
+    episode: Count | None = None
+    step: Count | None = None
+    value_version: Count | None = None
+    sinr_version: Count | None = None
+    dropped: dict[str, Count] = Field(default_factory=dict, max_length=64)
+    details: dict[str, Scalar] = Field(default_factory=dict, max_length=64)
+
+
+# -- the wire -----------------------------------------------------------------------------------
+def encode(message: Message) -> bytes:
+    return msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+
+
+def _unpack(payload: bytes, max_bytes: int) -> Any:
+    if len(payload) > max_bytes:
+        raise MessageError(f"payload of {len(payload)} bytes exceeds {max_bytes}")
+    try:
+        return msgpack.unpackb(payload, raw=False, strict_map_key=True)
+    except (ValueError, TypeError, msgpack.ExtraData, msgpack.FormatError,
+            msgpack.StackError) as exc:
+        raise MessageError(f"not msgpack ({type(exc).__name__}: {exc})") from None
+
+
+def _one_line(exc: ValidationError) -> str:
+    first = exc.errors()[0]
+    where = ".".join(str(part) for part in first["loc"]) or "(message)"
+    more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+    return f"{where}: {first['msg']}{more}"
+
+
+def decode(kind: type[M], payload: bytes) -> M:
+    """The message of type ``kind`` in ``payload``, validated; MessageError otherwise."""
+    data = _unpack(bytes(payload), kind.max_bytes)
+    if not isinstance(data, dict):
+        raise MessageError(f"{kind.__name__}: expected a map, got {type(data).__name__}")
+    try:
+        return kind.model_validate(data)
+    except ValidationError as exc:
+        raise MessageError(f"{kind.__name__}: {_one_line(exc)}") from None
+
+
+def decode_event(payload: bytes) -> Event:
+    data = _unpack(bytes(payload), Message.max_bytes)
+    try:
+        return _EVENTS.validate_python(data)
+    except ValidationError as exc:
+        raise MessageError(f"event: {_one_line(exc)}") from None
+
+
+def outcome_labels(codes) -> list[str]:
+    return [Outcome(int(code)).label for code in codes]
+
+
+# -- zenoh-cli codec (entry points in pyproject.toml) ------------------------------------------
+def _printable(value: Any) -> Any:
+    if isinstance(value, bytes):
+        return f"<{len(value)} bytes>"
+    if isinstance(value, dict):
+        return {str(k): _printable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_printable(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    return value
+
+
+def zenoh_cli_decoder(key: str, payload: bytes) -> str:
+    """msgpack payload -> one JSON line (binary fields shown as their length)."""
+    return json.dumps(_printable(_unpack(payload, MAX_WEIGHTS_BYTES + 4096)))
+
+
+def zenoh_cli_encoder(key: str, value: str) -> bytes:
+    """JSON text -> msgpack, e.g. a jammer command typed on the command line."""
+    return msgpack.packb(json.loads(value), use_bin_type=True)

@@ -1,0 +1,102 @@
+"""Where the system is on the bus: the router's endpoint and every key expression, under one
+prefix (default ``jamnav``).
+
+The layout groups what concerns one UAV under ``<prefix>/uav/<id>/`` so that one UAV's traffic
+can be watched with a single wildcard. ``docs/topics.md`` lists each key with its message.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+from dataclasses import dataclass
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+ENDPOINT_ENV = "JAMNAV_ENDPOINT"
+DEFAULT_PREFIX = "jamnav"
+_PREFIX = re.compile(r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
+
+
+def endpoint_from(given: str | None = None) -> str:
+    """--endpoint if given, else $JAMNAV_ENDPOINT, else the default loopback router."""
+    endpoint = given or os.environ.get(ENDPOINT_ENV) or DEFAULT_ENDPOINT
+    if "/" not in endpoint:
+        raise ValueError(f"endpoint {endpoint!r}: expected PROTOCOL/ADDRESS, e.g. "
+                         f"{DEFAULT_ENDPOINT}")
+    return endpoint
+
+
+def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
+    """--endpoint and --prefix: how every command and process finds its system."""
+    parser.add_argument("--endpoint", default=None,
+                        help=f"router (default ${ENDPOINT_ENV} or {DEFAULT_ENDPOINT})")
+    parser.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix of the system")
+
+
+@dataclass(frozen=True)
+class Topics:
+    prefix: str = DEFAULT_PREFIX
+
+    def __post_init__(self) -> None:
+        if not _PREFIX.match(self.prefix):
+            raise ValueError(f"bus prefix {self.prefix!r}: use letters, digits, _ and -, "
+                             "chunks separated by /")
+
+    # -- world ------------------------------------------------------------------------------
+    @property
+    def state(self) -> str:
+        """Whole-fleet state per step (monitoring: positions, velocities, SINR of every UAV)."""
+        return f"{self.prefix}/world/state"
+
+    @property
+    def join(self) -> str:
+        """Queryable of the world that hands a free UAV id to an agent started without one."""
+        return f"{self.prefix}/world/join"
+
+    def observation(self, uav: int | str) -> str:
+        """What one UAV observes at a step: its own state and the observable others."""
+        return f"{self.prefix}/uav/{uav}/observation"
+
+    def action(self, uav: int | str) -> str:
+        return f"{self.prefix}/uav/{uav}/action"
+
+    def measurements(self, uav: int | str) -> str:
+        return f"{self.prefix}/uav/{uav}/measurements"
+
+    # -- cloud ------------------------------------------------------------------------------
+    @property
+    def value_weights(self) -> str:
+        return f"{self.prefix}/cloud/weights/value"
+
+    @property
+    def sinr_map(self) -> str:
+        return f"{self.prefix}/cloud/weights/sinr_map"
+
+    # -- control, events, presence ----------------------------------------------------------
+    @property
+    def jammer_control(self) -> str:
+        return f"{self.prefix}/control/jammer"
+
+    def event(self, kind: str = "*") -> str:
+        return f"{self.prefix}/event/{kind}"
+
+    def alive(self, role: str = "*", ident: int | str = "*") -> str:
+        """Liveliness token of a process (``alive()`` matches every process)."""
+        return f"{self.prefix}/alive/{role}/{ident}"
+
+    def status(self, role: str = "*", ident: int | str = "*") -> str:
+        """Queryable through which a process reports its state (``status()``: all of them)."""
+        return f"{self.prefix}/status/{role}/{ident}"
+
+    @property
+    def everything(self) -> str:
+        return f"{self.prefix}/**"
+
+    def last_chunk(self, key: str) -> str:
+        return str(key).rsplit("/", 1)[-1]
+
+    def role_and_id(self, key: str) -> tuple[str, str]:
+        """(role, id) from an ``alive`` or ``status`` key."""
+        role, ident = str(key).rsplit("/", 2)[-2:]
+        return role, ident

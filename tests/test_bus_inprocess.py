@@ -1,0 +1,208 @@
+"""The runtime on the bus with every role in this process: a router and one client session per
+role on a free loopback port, multicast scouting off. Checks determinism against ``jamnav
+eval``, the jammer control topic, refusal of invalid messages, and the online map's answer to
+a live jammer swap."""
+
+from __future__ import annotations
+
+import json
+import logging
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import msgpack
+import pytest
+import torch
+
+from cloud_service.process import CloudService
+from cloud_service.sinr_mapping import RetrainConfig
+from jamnav.cli import main as jamnav
+from shared import bus
+from shared.messages import (
+    JammerCommand,
+    JammerInfo,
+    JammerReply,
+    decode,
+    decode_event,
+)
+from shared.topics import Topics
+from uav_agent.process import AgentService
+from world_sim.process import WorldConfig, WorldService
+
+torch.set_num_threads(1)
+
+
+def free_endpoint() -> str:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{probe.getsockname()[1]}"
+
+
+@dataclass
+class System:
+    topics: Topics
+    events: list  # every event seen, in arrival order
+    world: WorldService
+    cloud: CloudService
+    agents: list[AgentService]
+    sessions: list = field(default_factory=list)
+
+    def wait_for(self, kind: str, timeout: float, after: int = 0):
+        """The first ``kind`` event from index ``after`` of the event list on."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for event in self.events[after:]:
+                if event.type == kind:
+                    return event
+            time.sleep(0.05)
+        raise AssertionError(f"no {kind} event within {timeout} s")
+
+    def of_type(self, kind: str) -> list:
+        return [event for event in self.events if event.type == kind]
+
+    def jammer(self, command: JammerCommand | bytes) -> JammerReply:
+        """Ask the world; raw bytes show what it makes of a payload no model would build."""
+        if isinstance(command, JammerCommand):
+            return bus.query(self.sessions[0], self.topics.jammer_control, JammerReply, command)
+        replies = self.sessions[0].get(self.topics.jammer_control, payload=command, timeout=2)
+        return decode(JammerReply, next(iter(replies)).ok.payload.to_bytes())
+
+
+@contextmanager
+def running(scenario, tmp_path, *, mode: str, uavs: int, jammer: JammerInfo | None,
+            episodes: int | None, seed: int = 0, retrain: RetrainConfig | None = None
+            ) -> Iterator[System]:
+    endpoint, topics = free_endpoint(), Topics()
+    log = logging.getLogger("test-bus")
+    stop = threading.Event()
+    router = bus.open_session("router", endpoint)
+    sessions, threads = [], []
+    try:
+        def client():
+            sessions.append(bus.open_session("client", endpoint))
+            return sessions[-1]
+
+        monitor = client()
+        events: list = []
+        monitor.declare_subscriber(topics.event("*"),
+                                   lambda s: events.append(decode_event(s.payload.to_bytes())))
+        cloud = CloudService(client(), topics, scenario, mode, tmp_path, log, jammer=jammer,
+                             retrain=retrain)
+        world = WorldService(client(), topics, scenario,
+                             WorldConfig(uavs=uavs, seed=seed, episodes=episodes), jammer, log)
+        agents = [AgentService(client(), topics, scenario, uav, log) for uav in range(uavs)]
+
+        def fly(agent: AgentService) -> None:
+            if agent.start(stop):
+                agent.run(stop)
+
+        threads = [threading.Thread(target=cloud.run, args=(stop,)),
+                   threading.Thread(target=world.run, args=(stop,))]
+        threads += [threading.Thread(target=fly, args=(agent,)) for agent in agents]
+        for thread in threads:
+            thread.start()
+        yield System(topics, events, world, cloud, agents, sessions)
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join(30)
+        for session in sessions:
+            session.close()
+        router.close()
+    assert not any(thread.is_alive() for thread in threads)
+
+
+def wait_until(condition, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+def eval_outcomes(capsys, method: str, episodes: int, uavs: int, seed: int, jammer: str):
+    assert jamnav(["eval", "--method", method, "--episodes", str(episodes), "--uavs", str(uavs),
+                   "--seed", str(seed), "--jammer", jammer, "--per-episode", "--json"]) == 0
+    return json.loads(capsys.readouterr().out)["outcomes"]
+
+
+@pytest.mark.parametrize("method", ["perfect", "outdated"])
+def test_lockstep_over_the_bus_gives_the_outcomes_of_jamnav_eval(scenario, tmp_path, capsys,
+                                                                  method):
+    jammer = JammerInfo(x=0.0, y=0.0, power_w=1.0, height_m=scenario.jammer.height_m)
+    episodes, uavs, seed = 4, 4, 11
+    with running(scenario, tmp_path, mode=method, uavs=uavs, jammer=jammer, episodes=episodes,
+                 seed=seed) as system:
+        finished = system.wait_for("run_finished", 120)
+        outcomes = {e.episode: e.outcomes for e in system.of_type("uav_outcomes")}
+    assert finished.episodes == episodes and finished.missed_deadlines == 0
+    assert sorted(outcomes) == list(range(episodes))
+    bus_outcomes = [outcomes[episode] for episode in range(episodes)]
+    assert bus_outcomes == eval_outcomes(capsys, method, episodes, uavs, seed, "0,0,1")
+
+
+def test_jammer_control_replies_and_invalid_messages_are_refused_and_counted(scenario,
+                                                                            tmp_path):
+    jammer = JammerInfo(x=0.0, y=0.0, power_w=1.0, height_m=30.0)
+    with running(scenario, tmp_path, mode="perfect", uavs=2, jammer=jammer,
+                 episodes=None) as system:
+        system.wait_for("uav_outcomes", 60)
+        shown = system.jammer(JammerCommand(action="show"))
+        assert shown.accepted and shown.jammer == jammer
+
+        far = system.jammer(JammerCommand(action="set", x=500.0, y=0.0, power_w=1.0))
+        assert not far.accepted and "outside the area" in far.reason
+        assert far.jammer == jammer
+        nan = system.jammer(msgpack.packb({"action": "set", "x": 0.0, "y": 0.0,
+                                           "power_w": float("nan")}))
+        assert not nan.accepted and "finite" in nan.reason
+        negative = system.jammer(msgpack.packb({"action": "set", "x": 0.0, "y": 0.0,
+                                                "power_w": -1.0}))
+        assert not negative.accepted and "power_w" in negative.reason
+        assert not system.of_type("jammer_changed")
+
+        seen = len(system.events)
+        moved = system.jammer(JammerCommand(action="set", x=25.0, y=-10.0, power_w=0.5))
+        assert moved.accepted and moved.jammer.power_w == 0.5
+        changed = system.wait_for("jammer_changed", 10, after=seen)
+        assert changed.jammer == moved.jammer and changed.jammer.height_m == 30.0
+        off = system.jammer(JammerCommand(action="off"))
+        assert off.accepted and off.jammer is None
+        wait_until(lambda: len(system.of_type("jammer_changed")) == 2, 10)
+        assert system.of_type("jammer_changed")[-1].jammer is None
+
+        # The true map follows both changes: versions 2 and 3 reach every agent.
+        wait_until(lambda: all(a.models.sinr_version == 3 for a in system.agents), 20)
+
+        session = system.sessions[0]
+        session.put(system.topics.action(0), b"\x93\x01\x02")  # msgpack, but not a map
+        session.put(system.topics.action(1), msgpack.packb({"episode": 0, "step": 0, "uav": 1,
+                                                            "speed": float("inf"),
+                                                            "heading": 0.0}))
+        wait_until(lambda: system.world.dropped.as_dict().get(system.topics.action("*")) == 2,
+                   5)
+        dropped = system.world.dropped.as_dict()
+    assert dropped[system.topics.jammer_control] == 2
+    assert dropped[system.topics.action("*")] == 2
+
+
+def test_a_live_jammer_swap_is_detected_and_answered_with_a_new_map(scenario, tmp_path):
+    retrain = RetrainConfig(min_samples=600, steps=600, max_seconds=2.0)
+    with running(scenario, tmp_path, mode="online", uavs=4, jammer=None, episodes=None,
+                 retrain=retrain) as system:
+        system.wait_for("uav_outcomes", 60)
+        assert [a.models.sinr_version for a in system.agents] == [0, 0, 0, 0]
+        seen = len(system.events)
+        reply = system.jammer(JammerCommand(action="set", x=0.0, y=0.0, power_w=1.0))
+        assert reply.accepted
+        changed = system.wait_for("jammer_changed", 10, after=seen)
+        detected = system.wait_for("change_detected", 60, after=seen)
+        published = system.wait_for("sinr_weights_published", 60, after=seen)
+        assert changed.t <= detected.t <= published.t
+        assert published.version == 1 and detected.version == 0
+        saved = tmp_path / "sinr_maps" / "sinr_map_v1.safetensors"
+        assert published.path == str(saved.resolve()) and saved.is_file()
+        wait_until(lambda: all(a.models.sinr_version == 1 for a in system.agents), 20)

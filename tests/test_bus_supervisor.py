@@ -1,0 +1,155 @@
+"""``jamnav up`` for real: every role a separate OS process behind a router on a free loopback
+port. Checks the report against ``jamnav eval``, live control of a running system (jammer,
+status), the restart of a killed agent, and that nothing outlives the supervisor."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from jamnav.cli import main as jamnav
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def free_endpoint() -> str:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{probe.getsockname()[1]}"
+
+
+def gone(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+    except FileNotFoundError:
+        return True
+    return state == "Z"
+
+
+def wait_until(condition, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.fixture
+def supervisor():
+    """Start ``jamnav up`` in the background; whatever happens, stop it and its children."""
+    started: list[subprocess.Popen] = []
+
+    def start(*argv: str, **kwargs) -> subprocess.Popen:
+        env = dict(os.environ, PYTHONPATH=str(ROOT))
+        process = subprocess.Popen([sys.executable, "-m", "jamnav.cli", "up", *argv], env=env,
+                                   cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                   text=True, **kwargs)
+        started.append(process)
+        return process
+
+    yield start
+    for process in started:
+        if process.poll() is None:
+            process.send_signal(signal.SIGTERM)
+            try:
+                process.wait(30)
+            except subprocess.TimeoutExpired:
+                process.kill()  # its children stop by themselves when it disappears
+                process.wait()
+
+
+def run_json(capsys, *argv: str):
+    code = jamnav(list(argv))
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_up_runs_seeded_episodes_like_eval_and_leaves_nothing_behind(supervisor, capsys,
+                                                                     tmp_path):
+    endpoint = free_endpoint()
+    process = supervisor("--uavs", "3", "--episodes", "2", "--lockstep", "--map", "perfect",
+                         "--jammer", "0,0,1", "--seed", "5", "--no-figures", "--endpoint",
+                         endpoint, "--run-dir", str(tmp_path / "run"))
+    out, err = process.communicate(timeout=150)
+    assert process.returncode == 0, err[-2000:]
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert sorted(p["role"] for p in report["processes"]) == [
+        "agent", "agent", "agent", "cloud", "router", "world"]
+    assert all(gone(p["pid"]) for p in report["processes"])
+    code, eval_out, _ = run_json(capsys, "eval", "--method", "perfect", "--episodes", "2",
+                                 "--uavs", "3", "--seed", "5", "--jammer", "0,0,1",
+                                 "--per-episode", "--json")
+    expected = json.loads(eval_out)
+    assert report["outcomes"] == expected["outcomes"]
+    for key in ("success_rate", "disconnection_rate", "collision_rate", "timeout_rate"):
+        assert report[key] == pytest.approx(expected[key])
+    assert report["steps_per_second"] > 0 and report["missed_deadlines"] == 0
+    assert report["restarts"] == {"router": 0, "world": 0, "cloud": 0, "agent": 0}
+    assert report["dropped_messages"] == {}
+    assert [e["type"] for e in report["events"]].count("uav_outcomes") == 2
+    assert all(isinstance(e["t"], float) for e in report["events"])
+    assert "success" in out and report["stopped_by"] == "end"
+
+
+def test_a_running_system_is_controlled_restarts_a_dead_agent_and_stops_on_ctrl_c(
+        supervisor, capsys, tmp_path):
+    endpoint = free_endpoint()
+    run_dir = tmp_path / "run"
+    process = supervisor("--uavs", "2", "--map", "perfect", "--endpoint", endpoint,
+                         "--run-dir", str(run_dir))
+
+    def status():
+        code, out, _ = run_json(capsys, "status", "--json", "--endpoint", endpoint)
+        return json.loads(out) if code == 0 else []
+
+    def agent_pid(uav: int):
+        return next((p["pid"] for p in status() if p["role"] == "agent" and p["id"] == str(uav)
+                     and p.get("details", {}).get("decisions")), None)
+
+    first = wait_until(lambda: agent_pid(1), 90, "agent 1 flying")
+    os.kill(first, signal.SIGKILL)
+    wait_until(lambda: (pid := agent_pid(1)) and pid != first, 60, "agent 1 restarted")
+    world = next(p for p in status() if p["role"] == "world")
+    assert world["details"]["live_agents"] == 2
+
+    code, out, err = run_json(capsys, "jammer", "set", "--x", "500", "--y", "0", "--power", "1",
+                              "--endpoint", endpoint)
+    assert code == 2 and "outside the area" in err and err.count("\n") == 1
+    assert json.loads(out)["accepted"] is False
+    code, _, err = run_json(capsys, "jammer", "set", "--x", "0", "--y", "0", "--power", "nan",
+                            "--endpoint", endpoint)
+    assert code == 2 and err.count("\n") == 1
+    code, out, _ = run_json(capsys, "jammer", "set", "--x", "25", "--y", "-10", "--power",
+                            "0.5", "--endpoint", endpoint)
+    assert code == 0 and json.loads(out)["jammer"]["x"] == 25.0
+    code, out, _ = run_json(capsys, "jammer", "show", "--endpoint", endpoint)
+    assert code == 0 and json.loads(out)["jammer"]["power_w"] == 0.5
+    wait_until(lambda: any(p["role"] == "cloud" and p["sinr_version"] == 2 for p in status()),
+               30, "the true map of the new jammer")
+    code, out, _ = run_json(capsys, "status", "--endpoint", endpoint)
+    assert code == 0 and "world-0" in out and "agent-1" in out
+
+    process.send_signal(signal.SIGINT)
+    out, err = process.communicate(timeout=60)
+    assert process.returncode == 0, err[-2000:]
+    report = json.loads((run_dir / "report.json").read_text())
+    assert report["stopped_by"] == "signal"
+    assert report["restarts"]["agent"] == 1
+    assert first in [p["pid"] for p in report["processes"]]
+    assert all(gone(p["pid"]) for p in report["processes"])
+    changes = [e for e in report["events"] if e["type"] == "jammer_changed"]
+    assert changes and changes[-1]["jammer"]["x"] == 25.0
+    for figure in report["figures"]:
+        assert Path(figure).stat().st_size > 10_000
+    code, _, err = run_json(capsys, "status", "--endpoint", endpoint)
+    assert code == 1 and err.count("\n") == 1

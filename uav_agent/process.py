@@ -1,0 +1,314 @@
+"""One UAV's agent: decides its own moves with the shared lookahead policy.
+
+At start it fetches the value network and the current SINR map from the cloud (queries), then
+follows new versions (subscriptions), checking each one's digest and shape and keeping the
+last good one otherwise. For every observation the world sends it, it publishes an action and
+records its SINR measurement; measurements go to the cloud in small batches.
+
+It knows what the paper's UAV knows: its own state and mission, its own SINR measurements, the
+other UAVs' positions and velocities, and the maps the cloud sends. Nothing else reaches it
+(no jammer, no other UAV's destination), and it imports only ``shared``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import os
+import queue
+import secrets
+import sys
+import threading
+import time
+from collections import deque
+
+import numpy as np
+import torch
+
+from shared import bus
+from shared.features import MethodOptions, joint_state_size
+from shared.measurements import Measurement, MeasurementSpec, scenario_features
+from shared.messages import (
+    Action,
+    AgentObservation,
+    JoinReply,
+    MeasurementUpload,
+    ProcessStatus,
+    SinrMap,
+    ValueWeights,
+    encode,
+)
+from shared.networks import WeightsError, from_bytes
+from shared.policy import (
+    MAP_SPACING_M,
+    LevelRaster,
+    LookaheadPolicy,
+    RasterMap,
+    sinr_network_raster,
+)
+from shared.scenario import Scenario, ScenarioError, load_scenario
+from shared.topics import Topics, add_bus_arguments, endpoint_from
+
+ROLE = "agent"
+# A UAV hovering (or crawling) measures the same spot again and again: one measurement per
+# spot and level is all the cloud needs, and repeats would let one UAV's spot fill the
+# detector's windows. Closer than half a map cell counts as the same spot.
+SAME_SPOT_M = 0.5 * MAP_SPACING_M
+TIMINGS_KEPT = 4096
+
+
+class Models:
+    """The value network and SINR map in use, and the checks a new version must pass."""
+
+    def __init__(self, scenario: Scenario, log: logging.Logger):
+        self.scenario = scenario
+        self.log = log
+        self.policy: LookaheadPolicy | None = None
+        self.radio_map: RasterMap | None = None
+        self.value_version: int | None = None
+        self.sinr_version: int | None = None
+
+    @property
+    def ready(self) -> bool:
+        return self.policy is not None and self.radio_map is not None
+
+    def accept(self, update: ValueWeights | SinrMap) -> None:
+        """Swap in ``update`` if it is newer and sound; raise WeightsError otherwise (the
+        caller keeps flying with what it has)."""
+        if isinstance(update, ValueWeights):
+            if self.value_version is not None and update.version <= self.value_version:
+                return
+            self.policy = LookaheadPolicy(self.scenario, self._value_network(update))
+            self.value_version = update.version
+        else:
+            if self.sinr_version is not None and update.version <= self.sinr_version:
+                return
+            raster = self._raster(update)
+            self.radio_map = RasterMap(self.scenario, [raster], np.zeros(1, dtype=np.int64))
+            self.sinr_version = update.version
+        self.log.info("using %s version %d", type(update).__name__, update.version)
+
+    def _value_network(self, weights: ValueWeights):
+        network = from_bytes(weights.data, weights.sha256, {"kind": "value"})
+        options = MethodOptions.from_dict(network.method)
+        want = joint_state_size(self.scenario, options)
+        if network.input_size != want:
+            raise WeightsError(f"value network reads {network.input_size} features, this "
+                               f"scenario gives {want}")
+        return network
+
+    def _raster(self, update: SinrMap) -> LevelRaster:
+        scenario = self.scenario
+        level_count = scenario.channel.level_count
+        if update.grid is None:
+            spec = MeasurementSpec.of(scenario)
+            network = from_bytes(update.data, update.sha256, {
+                "kind": "sinr_map", "input_size": spec.feature_size, "levels": level_count})
+
+            return sinr_network_raster(network, scenario)
+        grid, area = update.grid, scenario.area
+        if (grid.x0 > area.x_min or grid.y0 > area.y_min
+                or grid.x0 + grid.spacing * (grid.cols - 1) < area.x_max
+                or grid.y0 + grid.spacing * (grid.rows - 1) < area.y_max):
+            raise WeightsError("raster does not cover the area")
+        levels = update.levels()
+        if levels.min() < 0 or levels.max() >= level_count:
+            raise WeightsError(f"raster holds levels outside 0..{level_count - 1}")
+        return LevelRaster(levels, grid.x0, grid.y0, grid.spacing)
+
+
+class AgentService:
+    def __init__(self, session, topics: Topics, scenario: Scenario, uav: int,
+                 log: logging.Logger, upload_every: int = 16, upload_after: float = 1.0):
+        self.session, self.topics, self.scenario, self.uav, self.log = (
+            session, topics, scenario, uav, log)
+        self.upload_every = upload_every
+        self.upload_after = upload_after
+        self.oldest_pending = 0.0
+        self.models = Models(scenario, log)
+        self.dropped = bus.Dropped(log)
+        self.observations: queue.SimpleQueue = queue.SimpleQueue()
+        self.updates: queue.SimpleQueue = queue.SimpleQueue()
+        # State in -> action out: wall time from arrival (it includes waiting for a core) and
+        # the CPU time the main thread spent on it.
+        self.timings_us: deque[float] = deque(maxlen=TIMINGS_KEPT)
+        self.cpu_us: deque[float] = deque(maxlen=TIMINGS_KEPT)
+        self.decisions = 0
+        self.uploads = 0
+        self.episode: int | None = None
+        self.step: int | None = None
+        self.pending: list[Measurement] = []
+        self.last_spot: tuple[float, float, int] | None = None
+        self.nonce = secrets.token_hex(4)  # upload ids stay unique across restarts
+        self.action_pub = bus.reliable_publisher(session, topics.action(uav), express=True)
+        self.upload_pub = bus.reliable_publisher(session, topics.measurements(uav))
+        self._declared = [
+            bus.subscribe(session, topics.observation(uav), AgentObservation,
+                          self._on_observation, self.dropped),
+            bus.subscribe(session, topics.value_weights, ValueWeights, self.updates.put,
+                          self.dropped),
+            bus.subscribe(session, topics.sinr_map, SinrMap, self.updates.put, self.dropped),
+            bus.serve_status(session, topics, ROLE, uav, self.status),
+        ]
+        self.token = None
+
+    def _on_observation(self, observation: AgentObservation) -> None:
+        self.observations.put((time.perf_counter(), observation))
+
+    def status(self) -> ProcessStatus:
+        # list() copies a deque atomically (GIL held) while the main loop appends to it.
+        timings = np.array(list(self.timings_us) or [0.0])
+        cpu = np.array(list(self.cpu_us) or [0.0])
+        p50, p99 = np.percentile(timings, [50, 99])
+        return ProcessStatus(
+            role=ROLE, ident=str(self.uav), pid=os.getpid(), t=time.time(),
+            episode=self.episode, step=self.step, value_version=self.models.value_version,
+            sinr_version=self.models.sinr_version, dropped=self.dropped.as_dict(),
+            details={"decisions": self.decisions, "uploads": self.uploads,
+                     "decision_p50_us": float(p50), "decision_p99_us": float(p99),
+                     "decision_cpu_p99_us": float(np.percentile(cpu, 99)),
+                     "ready": self.models.ready},
+        )
+
+    # -- start ------------------------------------------------------------------------------
+    def start(self, stop: threading.Event) -> bool:
+        """Fetch both maps, then declare presence (the world waits for it): False if stopped
+        first."""
+        for key, kind in ((self.topics.value_weights, ValueWeights),
+                          (self.topics.sinr_map, SinrMap)):
+            while not stop.is_set():
+                try:
+                    self.models.accept(bus.query(self.session, key, kind, timeout=2.0))
+                    break
+                except (bus.BusError, WeightsError) as exc:
+                    self.log.info("waiting for the cloud: %s", exc)
+                    stop.wait(0.5)
+        if stop.is_set():
+            return False
+        self.token = bus.declare_alive(self.session, self.topics, ROLE, self.uav)
+        return True
+
+    # -- main loop --------------------------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            try:
+                received = [self.observations.get(timeout=0.2)]
+            except queue.Empty:  # idle (UAV landed, world paused): prepare maps, send uploads
+                self._take_updates()
+                self._upload(time.time())
+                continue
+            while not self.observations.empty():  # behind (realtime): act on the newest
+                received.append(self.observations.get_nowait())
+            self._take_updates()
+            arrived, observation = received[-1]
+            self._act(arrived, observation)
+            for _, seen in received:
+                self._measure(seen)
+
+    def _take_updates(self) -> None:
+        while not self.updates.empty():
+            update = self.updates.get_nowait()
+            try:
+                self.models.accept(update)
+            except WeightsError as exc:
+                key = (self.topics.value_weights if isinstance(update, ValueWeights)
+                       else self.topics.sinr_map)
+                self.dropped.add(key, f"version {update.version} refused: {exc}")
+
+    def _act(self, arrived: float, observation: AgentObservation) -> None:
+        cpu = time.thread_time()
+        decision = self.models.policy.decide(observation.observation(), self.models.radio_map)
+        self.action_pub.put(encode(Action(
+            episode=observation.episode, step=observation.step, uav=self.uav,
+            speed=float(decision.speed[0]), heading=float(decision.heading[0]))))
+        self.timings_us.append((time.perf_counter() - arrived) * 1e6)
+        self.cpu_us.append((time.thread_time() - cpu) * 1e6)
+        self.decisions += 1
+        self.episode, self.step = observation.episode, observation.step
+
+    def _measure(self, observation: AgentObservation) -> None:
+        (x, y), level = observation.position, observation.level
+        last = self.last_spot
+        if last is not None and level == last[2] and math.hypot(x - last[0],
+                                                                y - last[1]) < SAME_SPOT_M:
+            return
+        self.last_spot = (x, y, level)
+        features = scenario_features(self.scenario, np.array(observation.position))
+        now = time.time()
+        if not self.pending:
+            self.oldest_pending = now
+        self.pending.append(Measurement(
+            id=f"{self.uav}-{self.nonce}-{observation.episode}-{observation.step}",
+            source=f"uav-{self.uav}", step=observation.step, time=now,
+            features=features.tolist(), level=observation.level))
+        self._upload(now)
+
+    def _upload(self, now: float) -> None:
+        """Send the pending measurements once there are enough (batches keep the message rate
+        down at speed) or the oldest has waited long enough (fresh data at slow clocks)."""
+        if self.pending and (len(self.pending) >= self.upload_every
+                             or now - self.oldest_pending >= self.upload_after):
+            self.upload_pub.put(encode(MeasurementUpload(uav=self.uav,
+                                                         measurements=self.pending)))
+            self.uploads += 1
+            self.pending = []
+
+
+def join(session, topics: Topics, stop: threading.Event, log: logging.Logger) -> int | None:
+    """Ask the world for a UAV without an agent (agents started as identical replicas)."""
+    while not stop.is_set():
+        try:
+            return bus.query(session, topics.join, JoinReply, timeout=2.0).uav
+        except bus.BusError as exc:
+            log.info("waiting for a UAV: %s", exc)
+            stop.wait(1.0)
+    return None
+
+
+# -- process shell ------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m uav_agent.process", description=__doc__)
+    add_bus_arguments(parser)
+    parser.add_argument("--scenario", default=None)
+    parser.add_argument("--uav", type=int, default=None,
+                        help="UAV to fly (default: ask the world for a free one)")
+    parser.add_argument("--upload-every", type=int, default=16, metavar="N",
+                        help="measurements per upload (or fewer, once the oldest is 1 s old)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    torch.set_num_threads(1)
+    try:
+        scenario = load_scenario(args.scenario)
+        if args.uav is not None and not 0 <= args.uav < 64:
+            raise ValueError("--uav must be between 0 and 63")
+        if not 1 <= args.upload_every <= 256:
+            raise ValueError("--upload-every must be between 1 and 256")
+        topics = Topics(args.prefix)
+        endpoint = endpoint_from(args.endpoint)
+    except (ScenarioError, ValueError, bus.BusError) as exc:
+        print(f"agent: error: {exc}", file=sys.stderr)
+        return 2
+    log = bus.setup_logging(f"agent-{'?' if args.uav is None else args.uav}")
+    stop = threading.Event()
+    bus.stop_on_signals(stop)
+    try:
+        session = bus.open_session("client", endpoint)
+    except bus.BusError as exc:
+        print(f"agent: error: {exc}", file=sys.stderr)
+        return 1
+    with session:
+        uav = args.uav if args.uav is not None else join(session, topics, stop, log)
+        if uav is None:
+            return 0
+        agent = AgentService(session, topics, scenario, uav, log, args.upload_every)
+        if agent.start(stop):
+            agent.run(stop)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,448 @@
+"""The world process: owns the truth (one environment of ``VectorWorld``) and steps it.
+
+Each step it sends every active UAV its observation, collects the agents' actions, applies
+pending jammer commands, steps the world and publishes the fleet state; at the end of an
+episode it publishes the UAV outcomes. Two clocks:
+
+- ``lockstep``: step t waits for the action for t of every live agent (liveliness), up to a
+  deadline. Deterministic: the same seed gives the same episodes as ``jamnav eval``.
+- ``realtime``: steps at a fixed rate; whatever action arrived for the current step is used.
+
+Either way a UAV without a fresh action keeps its last velocity, and the miss is counted.
+Zenoh callbacks only store what they receive; the main loop does all the work.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import zenoh
+
+from shared import bus
+from shared.features import Observation
+from shared.messages import (
+    Action,
+    AgentObservation,
+    Clock,
+    JammerChanged,
+    JammerCommand,
+    JammerInfo,
+    JammerReply,
+    JoinReply,
+    MessageError,
+    ProcessStatus,
+    RunFinished,
+    UavOutcomes,
+    WorldState,
+    decode,
+    encode,
+    outcome_labels,
+)
+from shared.radio import JammerParams, RadioModel
+from shared.scenario import Scenario, ScenarioError, load_scenario
+from shared.topics import Topics, add_bus_arguments, endpoint_from
+from world_sim.core import VectorWorld, episode_seed
+
+ROLE = "world"
+JOIN_HOLD_S = 10.0  # an id handed out is kept for its agent this long, waiting for its token
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    uavs: int
+    seed: int = 0
+    episodes: int | None = None  # None: until stopped (or ``duration``)
+    duration: float | None = None  # seconds of wall time
+    first_episode: int = 0  # a restarted world carries on where the last one stopped
+    clock: Clock = "lockstep"
+    rate: float = 10.0  # realtime: steps per second of wall time
+    deadline: float = 2.0  # lockstep: seconds to wait for the actions of a step
+    start_timeout: float = 60.0  # how long the first episode waits for every agent
+
+
+class Mailbox:
+    """Actions and agent presence, written by zenoh's threads, read by the main loop."""
+
+    def __init__(self, uavs: int):
+        self.uavs = uavs
+        self._cond = threading.Condition()
+        self._actions: dict[int, Action] = {}
+        self._live: set[int] = set()
+        self._joined: set[int] = set()  # live agents the main loop has not greeted yet
+        self._held: dict[int, float] = {}  # ids handed out by ``join``, until when
+
+    def put_action(self, action: Action) -> None:
+        with self._cond:
+            self._actions[action.uav] = action
+            self._cond.notify()
+
+    def on_presence(self, sample: zenoh.Sample) -> None:
+        try:
+            uav = int(str(sample.key_expr).rsplit("/", 1)[-1])
+        except ValueError:
+            return
+        with self._cond:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._live.add(uav)
+                self._joined.add(uav)
+                self._held.pop(uav, None)
+            else:
+                self._live.discard(uav)
+                self._joined.discard(uav)
+            self._cond.notify()
+
+    def live(self) -> set[int]:
+        with self._cond:
+            return set(self._live)
+
+    def take_joined(self) -> set[int]:
+        with self._cond:
+            joined, self._joined = self._joined, set()
+            return joined
+
+    def hand_out(self) -> int | None:
+        """A UAV id no live agent flies and none was promised to recently."""
+        now = time.monotonic()
+        with self._cond:
+            for uav in range(self.uavs):
+                if uav not in self._live and self._held.get(uav, 0.0) < now:
+                    self._held[uav] = now + JOIN_HOLD_S
+                    return uav
+        return None
+
+    def wait_all_live(self, until: float, stop: threading.Event) -> bool:
+        with self._cond:
+            while len(self._live & set(range(self.uavs))) < self.uavs:
+                remaining = until - time.monotonic()
+                if remaining <= 0 or stop.is_set():
+                    return False
+                self._cond.wait(min(remaining, 0.2))
+            return True
+
+    def collect(self, episode: int, step: int, active: set[int], until: float,
+                stop: threading.Event, early: bool) -> dict[int, Action]:
+        """Actions for (episode, step) of the ``active`` UAVs that are in by ``until``; with
+        ``early``, return as soon as every live active UAV has answered."""
+        with self._cond:
+            while True:
+                fresh = {uav: a for uav, a in self._actions.items()
+                         if uav in active and a.episode == episode and a.step == step}
+                waiting = (active & self._live) - fresh.keys()
+                remaining = until - time.monotonic()
+                if (early and not waiting) or remaining <= 0 or stop.is_set():
+                    return fresh
+                self._cond.wait(min(remaining, 0.1))
+
+
+class JammerDesk:
+    """Jammer commands come in on zenoh's query thread; they are checked and answered there,
+    and the main loop applies the accepted one between two steps."""
+
+    def __init__(self, scenario: Scenario, jammer: JammerInfo | None, dropped: bus.Dropped,
+                 key: str):
+        self.area = scenario.area
+        self.default_height = scenario.jammer.height_m
+        self.dropped = dropped
+        self.key = key
+        self._lock = threading.Lock()
+        self._current = jammer
+        self._pending: list[JammerInfo | None] = []  # accepted, in order; None = off
+        self.episode = 0
+        self.step = 0
+
+    def current(self) -> JammerInfo | None:
+        with self._lock:
+            return self._pending[-1] if self._pending else self._current
+
+    def handle(self, query: zenoh.Query) -> None:
+        payload = query.payload
+        try:
+            command = (JammerCommand(action="show") if payload is None
+                       else decode(JammerCommand, payload.to_bytes()))
+        except MessageError as exc:
+            self.dropped.add(self.key, str(exc))
+            query.reply(self.key, encode(self._reply(False, str(exc))))
+            return
+        reason = None
+        if command.action == "set" and not self.area.contains(command.x, command.y):
+            a = self.area
+            reason = (f"position ({command.x:g}, {command.y:g}) outside the area "
+                      f"[{a.x_min:g}, {a.x_max:g}] x [{a.y_min:g}, {a.y_max:g}]")
+        elif command.action != "show":
+            jammer = None
+            if command.action == "set" and command.power_w > 0:
+                height = self.default_height if command.height_m is None else command.height_m
+                jammer = JammerInfo(x=command.x, y=command.y, power_w=command.power_w,
+                                    height_m=height)
+            with self._lock:
+                self._pending.append(jammer)
+        query.reply(self.key, encode(self._reply(reason is None, reason)))
+
+    def _reply(self, accepted: bool, reason: str | None) -> JammerReply:
+        return JammerReply(accepted=accepted, reason=reason, jammer=self.current(),
+                           episode=self.episode, step=self.step)
+
+    def take(self) -> list[JammerInfo | None]:
+        """The commands accepted since the last call, in order."""
+        with self._lock:
+            taken, self._pending = self._pending, []
+            if taken:
+                self._current = taken[-1]
+            return taken
+
+
+def jammer_params(jammer: JammerInfo | None) -> JammerParams | None:
+    if jammer is None:
+        return None
+    return JammerParams(jammer.x, jammer.y, jammer.power_w, jammer.height_m)
+
+
+class WorldService:
+    def __init__(self, session: zenoh.Session, topics: Topics, scenario: Scenario,
+                 config: WorldConfig, jammer: JammerInfo | None, log: logging.Logger):
+        self.session, self.topics, self.config, self.log = session, topics, config, log
+        self.world = VectorWorld(scenario, 1, config.uavs)
+        self.world.set_jammer(slice(None), jammer_params(jammer))
+        self.dropped = bus.Dropped(log)
+        self.mailbox = Mailbox(config.uavs)
+        self.desk = JammerDesk(scenario, jammer, self.dropped, topics.jammer_control)
+        self.episode = config.first_episode
+        self.steps = 0
+        self.stepping_seconds = 0.0
+        self.missed = 0  # live agent, no action in time
+        self.unattended = 0  # no live agent for an active UAV
+        self.finished = False
+        self.observation_pubs = [bus.reliable_publisher(session, topics.observation(uav), True)
+                                 for uav in range(config.uavs)]
+        self.state_pub = session.declare_publisher(topics.state)  # monitoring: may drop
+        self._declared = [
+            bus.subscribe(session, topics.action("*"), Action, self._on_action, self.dropped),
+            session.liveliness().declare_subscriber(topics.alive("agent"),
+                                                    self.mailbox.on_presence, history=True),
+            session.declare_queryable(topics.jammer_control, self.desk.handle),
+            session.declare_queryable(topics.join, self._on_join),
+            bus.serve_status(session, topics, ROLE, 0, self.status),
+            bus.declare_alive(session, topics, ROLE, 0),
+        ]
+
+    # -- zenoh threads ---------------------------------------------------------------------
+    def _on_action(self, action: Action) -> None:
+        if action.uav < self.config.uavs:
+            self.mailbox.put_action(action)
+        else:
+            self.dropped.add(self.topics.action("*"), f"uav {action.uav} is not in this world")
+
+    def _on_join(self, query: zenoh.Query) -> None:
+        uav = self.mailbox.hand_out()
+        if uav is None:
+            query.reply_err(f"all {self.config.uavs} UAVs have an agent".encode())
+        else:
+            query.reply(self.topics.join, encode(JoinReply(uav=uav)))
+
+    def status(self) -> ProcessStatus:
+        jammer = self.desk.current()
+        return ProcessStatus(
+            role=ROLE, ident="0", pid=os.getpid(), t=time.time(), episode=self.episode,
+            step=int(self.world.steps[0]), dropped=self.dropped.as_dict(),
+            details={
+                "clock": self.config.clock, "uavs": self.config.uavs,
+                "live_agents": len(self.mailbox.live()), "steps": self.steps,
+                "steps_per_second": self.steps_per_second(), "missed_deadlines": self.missed,
+                "unattended_steps": self.unattended, "finished": self.finished,
+                "jammer": "off" if jammer is None else
+                f"{jammer.x:g},{jammer.y:g},{jammer.power_w:g},{jammer.height_m:g}",
+            },
+        )
+
+    def steps_per_second(self) -> float:
+        return self.steps / self.stepping_seconds if self.stepping_seconds > 0 else 0.0
+
+    # -- main loop -------------------------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        config = self.config
+        if not self.mailbox.wait_all_live(time.monotonic() + config.start_timeout, stop):
+            if stop.is_set():
+                return
+            self.log.warning("starting with %d of %d agents", len(self.mailbox.live()),
+                             config.uavs)
+        began = time.monotonic()
+        last = None if config.episodes is None else config.first_episode + config.episodes
+        out_of_time = (lambda: False) if config.duration is None else (
+            lambda: time.monotonic() - began >= config.duration)
+        while not stop.is_set() and self.episode != last and not out_of_time():
+            if self._fly_episode(stop, out_of_time):
+                self.episode += 1
+        self.finished = True
+        self._publish_event(RunFinished(
+            t=time.time(), source=ROLE, episodes=self.episode - config.first_episode,
+            steps=self.steps, seconds=self.stepping_seconds,
+            steps_per_second=self.steps_per_second(), missed_deadlines=self.missed))
+        self.log.info("run finished: %d episodes, %.0f steps/s, %d missed deadlines",
+                      self.episode - config.first_episode, self.steps_per_second(), self.missed)
+        stop.wait()  # stay up (status, control) until told to stop
+
+    def _fly_episode(self, stop: threading.Event, out_of_time) -> bool:
+        """One episode; True when it ran to its end."""
+        world, config = self.world, self.config
+        seed = episode_seed(config.seed, self.episode)
+        world.reset([0], [seed])
+        period = 1.0 / config.rate
+        tick = time.monotonic()  # realtime: when the current step ends
+        while True:
+            started = time.monotonic()
+            self._apply_jammer()
+            step = int(world.steps[0])
+            self.desk.episode, self.desk.step = self.episode, step
+            active = set(np.flatnonzero(world.active[0]).tolist())
+            self._publish_step(active)
+            if config.clock == "lockstep":
+                until, early = started + config.deadline, True
+            else:
+                tick = max(tick, started) + period  # late: start a new schedule, never rush
+                until, early = tick, False
+            actions = self.mailbox.collect(self.episode, step, active, until, stop, early)
+            if stop.is_set():
+                return False
+            result = world.step(*self._commands(actions, active))
+            self.steps += 1
+            self.stepping_seconds += time.monotonic() - started
+            if result.env_done[0]:
+                self._publish_state()
+                self._publish_event(UavOutcomes(
+                    t=time.time(), source=ROLE, episode=self.episode, seed=seed,
+                    steps=int(world.steps[0]), outcomes=outcome_labels(world.status[0])))
+                return True
+            if out_of_time():
+                return False
+
+    def _apply_jammer(self) -> None:
+        for jammer in self.desk.take():
+            self.world.set_jammer(slice(None), jammer_params(jammer))
+            self._publish_event(JammerChanged(
+                t=time.time(), source=ROLE, jammer=jammer, episode=self.episode,
+                step=int(self.world.steps[0])))
+            self.log.info("jammer changed to %s", jammer)
+
+    def _publish_step(self, active: set[int]) -> None:
+        w = self.world
+        for uav in self.mailbox.take_joined():
+            # The agent subscribed before declaring its token; make sure that subscription is
+            # known here, or its first observation could be lost.
+            if uav < self.config.uavs and not bus.wait_matching(self.observation_pubs[uav], 2.0):
+                self.log.warning("agent %d is live but not subscribed", uav)
+        observation = Observation.of_fleet(
+            w.position, w.velocity, w.heading, w.destination, w.radius, w.max_speed, w.level,
+            w.below_steps, w.active, w.steps)
+        for uav in sorted(active):
+            self.observation_pubs[uav].put(
+                encode(AgentObservation.of_row(observation, uav, self.episode, uav)))
+        self._publish_state()
+
+    def _publish_event(self, event) -> None:
+        bus.publish_event(self.session, self.topics, event)
+
+    def _publish_state(self) -> None:
+        w = self.world
+        self.state_pub.put(encode(WorldState.model_construct(
+            episode=self.episode, step=int(w.steps[0]), clock=self.config.clock, t=time.time(),
+            position=[tuple(p) for p in w.position[0].tolist()],
+            velocity=[tuple(v) for v in w.velocity[0].tolist()],
+            sinr_db=w.sinr_db[0].tolist(), level=w.level[0].tolist(),
+            status=outcome_labels(w.status[0]))))
+
+    def _commands(self, actions: dict[int, Action], active: set[int]
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """Commanded speed and heading (1, J): the agents' actions, else the last velocity."""
+        w = self.world
+        speed = np.hypot(w.velocity[..., 0], w.velocity[..., 1])
+        heading = w.heading.copy()
+        live = self.mailbox.live()
+        for uav in active:
+            action = actions.get(uav)
+            if action is None:
+                if uav in live:
+                    self.missed += 1
+                else:
+                    self.unattended += 1
+                continue
+            speed[0, uav], heading[0, uav] = action.speed, action.heading
+        return speed, heading
+
+
+# -- process shell ------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m world_sim.process", description=__doc__)
+    add_bus_arguments(parser)
+    parser.add_argument("--scenario", default=None)
+    parser.add_argument("--uavs", type=int, default=None)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--episodes", type=int, default=None)
+    parser.add_argument("--duration", type=float, default=None, metavar="SEC")
+    parser.add_argument("--first-episode", type=int, default=0)
+    parser.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep")
+    parser.add_argument("--rate", type=float, default=10.0, help="realtime steps per second")
+    parser.add_argument("--deadline", type=float, default=2.0, help="lockstep seconds")
+    parser.add_argument("--start-timeout", type=float, default=60.0)
+    jam = parser.add_mutually_exclusive_group()
+    jam.add_argument("--jammer", metavar="X,Y,P[,H]")
+    jam.add_argument("--no-jammer", action="store_true")
+    return parser
+
+
+def initial_jammer(scenario: Scenario, text: str | None, off: bool) -> JammerInfo | None:
+    """The jammer a run starts with: --jammer, --no-jammer or the scenario's."""
+    if off:
+        return None
+    if text is None:
+        default = RadioModel.jammer_of(scenario)
+        return None if default is None else JammerInfo(
+            x=default.x, y=default.y, power_w=default.power_w, height_m=default.height_m)
+    jammer = JammerInfo.parse(text, scenario.jammer.height_m)
+    if not scenario.area.contains(jammer.x, jammer.y):
+        raise ValueError(f"jammer {text!r}: position outside the area")
+    return jammer if jammer.power_w > 0 else None
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    log = bus.setup_logging(ROLE)
+    try:
+        scenario = load_scenario(args.scenario)
+        uavs = scenario.missions.uav_count if args.uavs is None else args.uavs
+        if not 1 <= uavs <= 64:
+            raise ValueError("--uavs must be between 1 and 64")
+        for name in ("episodes", "duration", "rate", "deadline"):
+            value = getattr(args, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"--{name} must be positive")
+        jammer = initial_jammer(scenario, args.jammer, args.no_jammer)
+        config = WorldConfig(uavs=uavs, seed=args.seed, episodes=args.episodes,
+                             duration=args.duration, first_episode=args.first_episode,
+                             clock=args.clock, rate=args.rate, deadline=args.deadline,
+                             start_timeout=args.start_timeout)
+        topics = Topics(args.prefix)
+        endpoint = endpoint_from(args.endpoint)
+    except (ScenarioError, ValueError, bus.BusError) as exc:
+        print(f"world: error: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    bus.stop_on_signals(stop)
+    try:
+        session = bus.open_session("client", endpoint)
+    except bus.BusError as exc:
+        print(f"world: error: {exc}", file=sys.stderr)
+        return 1
+    with session:
+        WorldService(session, topics, scenario, config, jammer, log).run(stop)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
