@@ -271,12 +271,8 @@ def main(argv: list[str] | None = None) -> int:
     except (ScenarioError, ValueError, bus.BusError) as exc:
         print(f"cloud: error: {exc}", file=sys.stderr)
         return 2
-    stop = threading.Event()
-    bus.stop_on_signals(stop)
-    try:
-        session = bus.open_session("client", endpoint)
-    except bus.BusError as exc:
-        print(f"cloud: error: {exc}", file=sys.stderr)
+    session, stop = bus.service_session("cloud", endpoint)
+    if session is None:
         return 1
     with session:
         try:

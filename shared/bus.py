@@ -193,3 +193,16 @@ def stop_on_signals(stop: threading.Event) -> None:
 
     if parent > 1:
         threading.Thread(target=watch_parent, name="parent-watch", daemon=True).start()
+
+
+def service_session(role: str, endpoint: str) -> tuple[zenoh.Session | None, threading.Event]:
+    """What every process shell starts with: a stop event wired to signals and a client
+    session to the router. When the router cannot be reached, one line on stderr and no
+    session (the caller exits 1)."""
+    stop = threading.Event()
+    stop_on_signals(stop)
+    try:
+        return open_session("client", endpoint), stop
+    except BusError as exc:
+        print(f"{role}: error: {exc}", file=sys.stderr)
+        return None, stop

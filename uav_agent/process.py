@@ -293,12 +293,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"agent: error: {exc}", file=sys.stderr)
         return 2
     log = bus.setup_logging(f"agent-{'?' if args.uav is None else args.uav}")
-    stop = threading.Event()
-    bus.stop_on_signals(stop)
-    try:
-        session = bus.open_session("client", endpoint)
-    except bus.BusError as exc:
-        print(f"agent: error: {exc}", file=sys.stderr)
+    session, stop = bus.service_session("agent", endpoint)
+    if session is None:
         return 1
     with session:
         uav = args.uav if args.uav is not None else join(session, topics, stop, log)

@@ -432,12 +432,8 @@ def main(argv: list[str] | None = None) -> int:
     except (ScenarioError, ValueError, bus.BusError) as exc:
         print(f"world: error: {exc}", file=sys.stderr)
         return 2
-    stop = threading.Event()
-    bus.stop_on_signals(stop)
-    try:
-        session = bus.open_session("client", endpoint)
-    except bus.BusError as exc:
-        print(f"world: error: {exc}", file=sys.stderr)
+    session, stop = bus.service_session("world", endpoint)
+    if session is None:
         return 1
     with session:
         WorldService(session, topics, scenario, config, jammer, log).run(stop)
