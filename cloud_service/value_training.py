@@ -247,10 +247,8 @@ def fly(
         speed, heading = controller.act(world)
         result = world.step(speed, heading)
         decisions += rows.size
-        ended = result.finished & (world.status == Outcome.DISCONNECTION)
-        late = result.finished & (world.status == Outcome.TIMEOUT)
-        reward = (result.reward + options.disconnection_reward * ended
-                  + options.timeout_reward * late)
+        lost = result.finished & (world.status == Outcome.DISCONNECTION)
+        reward = result.reward + options.disconnection_reward * lost
         recorder.record(states, rows, reward)
         returns += reward
         on_missions([recorder.take(e, u) for e, u in zip(*np.nonzero(result.finished),

@@ -34,11 +34,6 @@ class MethodOptions(NamedTuple):
     # The lookahead treats another UAV closer than r_i + r_j + margin as a collision: the
     # others may turn into the predicted path within the step.
     collision_margin_m: float = 0.0
-    # Share of the episode's time still left, as a feature, and a reward when the mission
-    # times out: without them a UAV's value cannot tell waiting from progress, and a greedy
-    # lookahead can hover forever in front of a gap.
-    time_left: bool = False
-    timeout_reward: float = 0.0
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None) -> MethodOptions:
@@ -47,14 +42,12 @@ class MethodOptions(NamedTuple):
 
 PAPER_METHOD = MethodOptions()
 EXTENDED_METHOD = MethodOptions(disconnection_memory=True, route_distance=True,
-                                disconnection_reward=-1.0, collision_margin_m=1.5,
-                                time_left=True, timeout_reward=-1.0)
+                                disconnection_reward=-1.0, collision_margin_m=1.5)
 METHODS = {"paper": PAPER_METHOD, "extended": EXTENDED_METHOD}
 
 
 def joint_state_size(scenario: Scenario, options: MethodOptions = PAPER_METHOD) -> int:
-    extra = int(options.disconnection_memory) + int(options.route_distance) + int(
-        options.time_left)
+    extra = int(options.disconnection_memory) + int(options.route_distance)
     return len(OWN_FEATURES) + len(OTHER_FEATURES) * scenario.policy.observed_uavs + 1 + extra
 
 
@@ -154,7 +147,6 @@ def joint_state(
     observed_uavs: int,
     below_steps: np.ndarray | None = None,
     route_distance: np.ndarray | None = None,
-    time_left: np.ndarray | None = None,
 ) -> np.ndarray:
     """Joint state features, float32, shape (..., F).
 
@@ -169,7 +161,7 @@ def joint_state(
     safe = np.where(goal_distance > 0, goal_distance, 1.0)
     cos = np.where(goal_distance > 0, to_goal[..., 0] / safe, 1.0)
     sin = np.where(goal_distance > 0, to_goal[..., 1] / safe, 0.0)
-    extras = [c for c in (below_steps, route_distance, time_left) if c is not None]
+    extras = [column for column in (below_steps, route_distance) if column is not None]
     level_column = len(OWN_FEATURES) + len(OTHER_FEATURES) * observed_uavs
     size = level_column + 1 + len(extras)
     out = np.zeros(batch + (size,), dtype=np.float32)
@@ -243,11 +235,4 @@ def observation_state(
         observed_uavs,
         observation.below_steps if options.disconnection_memory else None,
         route,
-        time_share_left(scenario, observation.step) if options.time_left else None,
     )
-
-
-def time_share_left(scenario: Scenario, step: np.ndarray) -> np.ndarray:
-    """Share of the episode's steps still to go at episode step ``step``."""
-    limit = scenario.timing.episode_limit_steps
-    return np.clip((limit - np.asarray(step, dtype=np.float64)) / limit, 0.0, 1.0)

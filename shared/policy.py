@@ -15,7 +15,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 import torch
 
-from shared.features import MethodOptions, Observation, joint_state, time_share_left
+from shared.features import MethodOptions, Observation, joint_state
 from shared.kinematics import ActionSet, closest_approach, velocity_of
 from shared.measurements import predict_levels, scenario_features
 from shared.networks import ValueNetwork
@@ -145,7 +145,6 @@ class LookaheadPolicy:
         self.tolerance = scenario.uav.arrival_tolerance_m
         self.options = MethodOptions.from_dict(value_net.method)
         self.disconnection_limit = scenario.timing.disconnection_limit_steps
-        self.step_limit = scenario.timing.episode_limit_steps
         self.device = torch.device(device)
         self.value_net = value_net.to(self.device).eval()
 
@@ -201,8 +200,6 @@ class LookaheadPolicy:
             below if self.options.disconnection_memory else None,
             radio_map.route_distance(next_position, observation.destination)
             if self.options.route_distance else None,
-            time_share_left(self.scenario, observation.step + 1)[:, None]
-            if self.options.time_left else None,
         )
         next_value = self.values(states.reshape(-1, states.shape[-1])).reshape(n, -1)
         # Arrival and collision end the mission: nothing follows them. A UAV that counts its
@@ -212,10 +209,6 @@ class LookaheadPolicy:
             lost = ~arrived & (gap > 0) & (below > self.disconnection_limit)
             terminal |= lost
             reward = reward + self.options.disconnection_reward * lost
-        if self.options.time_left:
-            late = ~terminal & (observation.step + 1 >= self.step_limit)[:, None]
-            terminal |= late
-            reward = reward + self.options.timeout_reward * late
         score = reward + self.gamma * np.where(terminal, 0.0, next_value)
         chosen = score.argmax(axis=1)
         value = score[np.arange(n), chosen]
