@@ -30,9 +30,8 @@ from cloud_service.rollout import (
 )
 from cloud_service.sinr_mapping import OnlineSinrMapper, RetrainConfig
 from cloud_service.sinr_memory import SinrMemory
-from shared.features import MethodOptions, joint_state_size
 from shared.measurements import MeasurementBatch, MeasurementSpec, scenario_features
-from shared.networks import SinrMapNetwork, ValueNetwork, WeightsError, load_network
+from shared.networks import SinrMapNetwork, WeightsError, load_network
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting
 from shared.policy import LookaheadPolicy, RasterMap, sinr_network_raster
@@ -47,16 +46,16 @@ class EvaluationError(ValueError):
     """Inputs that cannot be evaluated (missing or mismatched weights); one line."""
 
 
-def load_value_net(scenario: Scenario, path: Path) -> ValueNetwork:
+def load_policy(scenario: Scenario, path: Path) -> LookaheadPolicy:
+    """The lookahead with the value network at ``path``; unusable weights are one line."""
     try:
-        network, _ = load_network(path, {"kind": "value"})
+        network, _ = load_network(path, {"kind": "value"})  # its errors name the file
     except WeightsError as exc:
         raise EvaluationError(str(exc)) from None
-    wanted = joint_state_size(scenario, MethodOptions.from_dict(network.method))
-    if network.input_size != wanted:
-        raise EvaluationError(f"{path}: built for {network.input_size} inputs, this scenario "
-                              f"gives {wanted}")
-    return network
+    try:
+        return LookaheadPolicy(scenario, network)
+    except WeightsError as exc:
+        raise EvaluationError(f"{path}: {exc}") from None
 
 
 class OnlineMaps:
@@ -128,7 +127,7 @@ def evaluate(
     online = None
     with tempfile.TemporaryDirectory(prefix="jamnav-eval-") as scratch:
         if method in ("proposed", "perfect", "outdated"):
-            policy = LookaheadPolicy(scenario, load_value_net(scenario, value_net))
+            policy = load_policy(scenario, value_net)
             if method == "proposed":
                 online = OnlineMaps(scenario, sinr_map, Path(scratch))
                 maps = online
@@ -261,7 +260,7 @@ def trajectories(
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """One episode on the true map: positions (steps + 1, J, 2), destinations (J, 2) and
     each UAV's outcome, for the paper's Fig. 3."""
-    policy = LookaheadPolicy(scenario, load_value_net(scenario, value_net))
+    policy = load_policy(scenario, value_net)
     track: list[np.ndarray] = []
     destinations: list[np.ndarray] = []
 

@@ -15,10 +15,10 @@ from typing import NamedTuple, Protocol
 import numpy as np
 import torch
 
-from shared.features import MethodOptions, Observation, joint_state
+from shared.features import MethodOptions, Observation, joint_state, joint_state_size
 from shared.kinematics import ActionSet, closest_approach, velocity_of
 from shared.measurements import predict_levels, scenario_features
-from shared.networks import ValueNetwork
+from shared.networks import ValueNetwork, WeightsError
 from shared.radio import JammerParams, RadioModel
 from shared.rewards import RewardModel, smallest_gaps
 from shared.routes import RouteGrid
@@ -144,6 +144,10 @@ class LookaheadPolicy:
         self.observed_uavs = scenario.policy.observed_uavs
         self.tolerance = scenario.uav.arrival_tolerance_m
         self.options = MethodOptions.from_dict(value_net.method)
+        wanted = joint_state_size(scenario, self.options)
+        if value_net.input_size != wanted:
+            raise WeightsError(f"value network reads {value_net.input_size} features, this "
+                               f"scenario gives {wanted}")
         self.disconnection_limit = scenario.timing.disconnection_limit_steps
         self.device = torch.device(device)
         self.value_net = value_net.to(self.device).eval()

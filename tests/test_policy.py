@@ -96,3 +96,12 @@ def test_raster_map_agrees_with_the_exact_map(scenario):
     node = np.array([[[MAP_SPACING_M * 20, -MAP_SPACING_M * 7]]] * 4)
     want = [radio.evaluate(node[0, 0], jammer).level] * 2 + [radio.evaluate(node[0, 0]).level] * 2
     np.testing.assert_array_equal(maps.level_at(node)[:, 0], want)
+
+
+def test_a_value_network_of_the_wrong_input_size_is_refused(scenario):
+    import pytest
+
+    from shared.networks import WeightsError
+
+    with pytest.raises(WeightsError, match="features"):
+        LookaheadPolicy(scenario, ValueNetwork(joint_state_size(scenario) + 1, 2.0))

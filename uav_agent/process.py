@@ -27,7 +27,6 @@ import numpy as np
 import torch
 
 from shared import bus
-from shared.features import MethodOptions, joint_state_size
 from shared.measurements import Measurement, MeasurementSpec, scenario_features
 from shared.messages import (
     Action,
@@ -79,7 +78,8 @@ class Models:
         if isinstance(update, ValueWeights):
             if self.value_version is not None and update.version <= self.value_version:
                 return
-            self.policy = LookaheadPolicy(self.scenario, self._value_network(update))
+            network = from_bytes(update.data, update.sha256, {"kind": "value"})
+            self.policy = LookaheadPolicy(self.scenario, network)
             self.value_version = update.version
         else:
             if self.sinr_version is not None and update.version <= self.sinr_version:
@@ -88,15 +88,6 @@ class Models:
             self.radio_map = RasterMap(self.scenario, [raster], np.zeros(1, dtype=np.int64))
             self.sinr_version = update.version
         self.log.info("using %s version %d", type(update).__name__, update.version)
-
-    def _value_network(self, weights: ValueWeights):
-        network = from_bytes(weights.data, weights.sha256, {"kind": "value"})
-        options = MethodOptions.from_dict(network.method)
-        want = joint_state_size(self.scenario, options)
-        if network.input_size != want:
-            raise WeightsError(f"value network reads {network.input_size} features, this "
-                               f"scenario gives {want}")
-        return network
 
     def _raster(self, update: SinrMap) -> LevelRaster:
         scenario = self.scenario
