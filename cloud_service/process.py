@@ -2,9 +2,10 @@
 
 - The value network and the SINR map are each a queryable (the latest version, for agents
   that start) plus a publication on every new version.
-- Measurement uploads go into the replay memory through the online SINR mapper, which watches
-  the map's accuracy, detects jammer changes and retrains in its own worker; each new version
-  is saved in the run directory and published, with events.
+- Measurement uploads (queries) go into the replay memory through the online SINR mapper,
+  which watches the map's accuracy, detects jammer changes and retrains in its own worker; each
+  new version is saved in the run directory and published, with events. An upload is answered
+  with a receipt only once it is stored: an agent keeps what has no receipt and sends it again.
 - ``--map perfect`` and ``--map outdated`` replace the learned map, for comparison: the true
   map of the current jammer (followed through the world's ``jammer_changed`` events) or the
   map without any jammer, both as rasters.
@@ -38,12 +39,15 @@ from shared.messages import (
     JammerInfo,
     MapMode,
     MeasurementUpload,
+    MessageError,
     ProcessStatus,
     RasterGrid,
     RetrainFailed,
     SinrMap,
     SinrWeightsPublished,
+    UploadReceipt,
     ValueWeights,
+    decode,
     encode,
 )
 from shared.networks import WeightsError, load_network, sha256
@@ -88,6 +92,8 @@ class CloudService:
         self.maps_dir.mkdir(parents=True, exist_ok=True)
         self.dropped = bus.Dropped(log)
         self.tasks: queue.SimpleQueue = queue.SimpleQueue()
+        self.receipts = {"measurements_stored": 0, "measurements_duplicates": 0,
+                         "measurements_refused": 0}  # since this process started
         self._lock = threading.Lock()  # guards the two current messages
         self.value = self._value_weights(value_net)
         self.memory = SinrMemory(run_dir / "cloud" / "memory.sqlite", MeasurementSpec.of(scenario))
@@ -104,11 +110,10 @@ class CloudService:
         # was down) catch up; agents that start later ask the queryables.
         self.value_pub.put(encode(self.value))
         self.sinr_pub.put(encode(self.sinr))
+        self.upload_desk = session.declare_queryable(topics.measurements("*"), self._on_upload)
         self._declared = [
             session.declare_queryable(topics.value_weights, self._serve_value),
             session.declare_queryable(topics.sinr_map, self._serve_sinr),
-            bus.subscribe(session, topics.measurements("*"), MeasurementUpload, self.tasks.put,
-                          self.dropped),
             bus.serve_status(session, topics, ROLE, 0, self.status),
         ]
         if mode == "perfect":
@@ -148,11 +153,26 @@ class CloudService:
             current = self.sinr
         query.reply(self.topics.sinr_map, encode(current))
 
+    def _on_upload(self, query) -> None:
+        """Checked here, stored and answered by the worker (the query waits for its receipt)."""
+        key = self.topics.measurements("*")
+        try:
+            if query.payload is None:
+                raise MessageError("upload without a payload")
+            upload = decode(MeasurementUpload, query.payload.to_bytes())
+            if str(upload.uav) != self.topics.uav_of(str(query.key_expr)):
+                raise MessageError(f"upload of uav {upload.uav} on {query.key_expr}")
+        except MessageError as exc:
+            self.dropped.add(key, str(exc))
+            query.reply_err(str(exc).encode())
+            return
+        self.tasks.put((upload, query))
+
     def status(self) -> ProcessStatus:
         with self._lock:
             current = self.sinr
         details = {"map": self.mode, "stored": self.memory.count(),
-                   "map_accuracy": current.accuracy}
+                   "map_accuracy": current.accuracy, **self.receipts}
         return ProcessStatus(role=ROLE, ident="0", pid=os.getpid(), t=time.time(),
                              value_version=self.value.version, sinr_version=current.version,
                              dropped=self.dropped.as_dict(), details=details)
@@ -166,23 +186,39 @@ class CloudService:
                 continue
             while not self.tasks.empty():
                 tasks.append(self.tasks.get_nowait())
-            uploads = [m for task in tasks if isinstance(task, MeasurementUpload)
-                       for m in task.measurements]
-            if uploads:
-                self._ingest(uploads)
-            for task in tasks:
-                if isinstance(task, JammerChanged):
-                    self._follow_jammer(task)
+            self._handle(tasks)
+        # Uploads already taken in get their receipt; later ones find no cloud, and wait.
+        self.upload_desk.undeclare()
+        while not self.tasks.empty():
+            self._handle([self.tasks.get_nowait()])
         if self.mapper is not None:
             self.mapper.close()
         else:
             self.memory.close()
 
-    def _ingest(self, uploads) -> None:
+    def _handle(self, tasks: list) -> None:
+        for task in tasks:
+            if isinstance(task, JammerChanged):
+                self._follow_jammer(task)
+            else:
+                upload, query = task
+                query.reply(query.key_expr, encode(self._ingest(upload.measurements)))
+                query.drop()  # a query held on to is not finished: its caller would wait
+
+    def _ingest(self, measurements) -> UploadReceipt:
         if self.mapper is None:
-            self.memory.store(uploads)
-            return
-        self.mapper.ingest(uploads)
+            stored, duplicates = self.memory.append(measurements)
+        else:
+            report = self.mapper.ingest(measurements)
+            stored, duplicates = report.accepted, report.duplicates
+            self._publish_mapper_events()
+        receipt = UploadReceipt(stored=stored, duplicates=duplicates,
+                                refused=len(measurements) - stored - duplicates)
+        for name, count in receipt:
+            self.receipts[f"measurements_{name}"] += count
+        return receipt
+
+    def _publish_mapper_events(self) -> None:
         events = self.mapper.events
         for event in events[self._events_seen:]:
             if event["type"] == "change_detected":

@@ -48,6 +48,7 @@ ROOT = Path(__file__).resolve().parent.parent
 STOP_GRACE_S = 10.0
 RESTART_LIMIT = 5
 STATUS_EVERY_S = 2.0
+FLUSH_WAIT_S = 5.0
 
 
 @dataclass
@@ -296,6 +297,17 @@ class Supervisor:
                     self.dropped.add(self.topics.status(), str(exc))
         return found
 
+    def _uploads_handed_over(self, session: zenoh.Session, statuses: list[ProcessStatus]
+                             ) -> list[ProcessStatus]:
+        """Statuses once every agent's outbox is empty (the report's measurement counts are
+        then final), or after ``FLUSH_WAIT_S``."""
+        deadline = time.monotonic() + FLUSH_WAIT_S
+        while time.monotonic() < deadline and any(
+                s.details.get("measurements_buffered") for s in statuses if s.role == "agent"):
+            time.sleep(0.2)
+            statuses = self._statuses(session)
+        return statuses
+
     def _maybe_swap(self, session: zenoh.Session) -> None:
         c = self.config
         if (self.swapped or c.swap_at is None or self.first_step is None
@@ -383,10 +395,15 @@ class Supervisor:
                 time.sleep(0.2)  # the last events of a run in flight
                 self._drain()
                 statuses = self._statuses(session)
+                if self.stopped_by == "end":
+                    statuses = self._uploads_handed_over(session, statuses)
                 if self.interactive:
                     self.stream.write("\n")
                 self._say("stopping")
-                self._stop_children(("world", "agent", "cloud"))
+                # The world first (no new measurements), then the agents, which hand their
+                # outboxes to the cloud as they stop, then the cloud.
+                for role in ("world", "agent", "cloud"):
+                    self._stop_children((role,))
         finally:
             self._stop_children(("world", "agent", "cloud", "router"))
             for sig, handler in previous.items():
@@ -431,7 +448,22 @@ class Supervisor:
             "agents": {s.ident: {k: s.details.get(k) for k in (
                 "decisions", "decision_p50_us", "decision_p99_us", "decision_cpu_p99_us")}
                 for s in statuses if s.role == "agent"},
+            "measurements": measurement_counts(statuses),
         }
+
+
+def measurement_counts(statuses: list[ProcessStatus]) -> dict[str, int | None]:
+    """Where the UAVs' measurements went: taken by the agents now running, still in their
+    outboxes, dropped from a full outbox, and held by the cloud's memory (which survives a
+    restart of the cloud). An agent restarted after a crash starts its counts afresh."""
+    agents = [s.details for s in statuses if s.role == "agent"]
+    cloud = next((s.details for s in statuses if s.role == "cloud"), None)
+    counts: dict[str, int | None] = {
+        name: sum(int(a.get(f"measurements_{name}") or 0) for a in agents)
+        for name in ("taken", "acknowledged", "buffered", "overflowed", "refused")}
+    counts["upload_failures"] = sum(int(a.get("upload_failures") or 0) for a in agents)
+    counts["in_memory"] = None if cloud is None else cloud.get("stored")
+    return counts
 
 
 # -- after the run ------------------------------------------------------------------------------
@@ -448,6 +480,10 @@ def summary_table(report: dict[str, Any]) -> str:
     dropped = report["dropped_messages"]
     rows.append("  dropped        " + (", ".join(f"{k} {v}" for k, v in dropped.items())
                                        or "none"))
+    m = report["measurements"]
+    rows.append(f"  measurements   {m['taken']} taken, {m['in_memory']} in the cloud's memory, "
+                f"{m['buffered']} still buffered, {m['overflowed']} dropped from full outboxes, "
+                f"{m['upload_failures']} uploads retried")
     for event in report["events"]:
         if event["type"] in ("jammer_changed", "change_detected", "sinr_weights_published"):
             extra = {k: event[k] for k in ("version", "accuracy", "jammer") if k in event}

@@ -36,6 +36,10 @@ class BusError(RuntimeError):
     """The bus cannot be reached; the text is one line."""
 
 
+class QueryRefused(BusError):
+    """The queryable answered, with an error: asking again would not help."""
+
+
 def config(mode: Literal["router", "client"], endpoint: str,
            connect_timeout_ms: int = CONNECT_TIMEOUT_MS,
            routers: tuple[str, ...] = ()) -> zenoh.Config:
@@ -145,19 +149,21 @@ def subscribe(session: zenoh.Session, key: str, kind: type[M], on_message: Calla
 
 def query(session: zenoh.Session, key: str, kind: type[M], payload: Message | None = None,
           timeout: float = 2.0) -> M:
-    """The first valid reply of a query; BusError (one line) if none came."""
+    """The first valid reply of a query; QueryRefused if the only answers were errors,
+    BusError (one line) if none came."""
     replies = session.get(key, payload=None if payload is None else encode(payload),
                           timeout=timeout)
-    problem = "no reply (is the system running?)"
+    problem, refused = "no reply (is the system running?)", False
     for reply in replies:
         if reply.ok is None:
             problem = f"error reply: {reply.err.payload.to_bytes().decode(errors='replace')}"
+            refused = True
             continue
         try:
             return decode(kind, reply.ok.payload.to_bytes())
         except MessageError as exc:
             problem = f"invalid reply: {exc}"
-    raise BusError(f"{key}: {problem}")
+    raise (QueryRefused if refused else BusError)(f"{key}: {problem}")
 
 
 def serve_status(session: zenoh.Session, topics: Topics, role: str, ident: int | str,

@@ -148,12 +148,25 @@ class WorldState(Message):
 
 
 # -- measurements and weights -------------------------------------------------------------------
+MAX_UPLOAD = 256  # measurements per upload
+
+
 class MeasurementUpload(Message):
-    """A small batch of one UAV's measurements (the cloud screens each record)."""
+    """A batch of one UAV's measurements, sent as a query: the cloud answers once it has
+    stored them, and the agent keeps them until then (the cloud screens each record)."""
 
     max_bytes: ClassVar[int] = 512 * 1024
     uav: UavId
-    measurements: list[Measurement] = Field(min_length=1, max_length=256)
+    measurements: list[Measurement] = Field(min_length=1, max_length=MAX_UPLOAD)
+
+
+class UploadReceipt(Message):
+    """The cloud's answer to an upload, once it is in the replay memory: records stored now,
+    records it already held (a repeat after a lost receipt) and records it refused."""
+
+    stored: Count
+    duplicates: Count
+    refused: Count
 
 
 class RasterGrid(Message):

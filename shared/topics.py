@@ -96,6 +96,10 @@ class Topics:
     def last_chunk(self, key: str) -> str:
         return str(key).rsplit("/", 1)[-1]
 
+    def uav_of(self, key: str) -> str:
+        """The UAV id of a ``<prefix>/uav/<id>/...`` key (what a wildcard subscriber got)."""
+        return str(key)[len(self.prefix) + 1:].split("/")[1]
+
     def role_and_id(self, key: str) -> tuple[str, str]:
         """(role, id) from an ``alive`` or ``status`` key."""
         role, ident = str(key).rsplit("/", 2)[-2:]

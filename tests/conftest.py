@@ -1,5 +1,11 @@
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from shared.scenario import Scenario, load_scenario
@@ -16,3 +22,28 @@ def variant(base: Scenario, **sections) -> Scenario:
     for section, values in sections.items():
         data[section].update(values)
     return Scenario.model_validate(data)
+
+
+@pytest.fixture
+def supervisor():
+    """Start ``jamnav up`` in the background; whatever happens, stop it and its children."""
+    root = Path(__file__).resolve().parent.parent
+    started: list[subprocess.Popen] = []
+
+    def start(*argv: str, **kwargs) -> subprocess.Popen:
+        env = dict(os.environ, PYTHONPATH=str(root))
+        process = subprocess.Popen([sys.executable, "-m", "jamnav.cli", "up", *argv], env=env,
+                                   cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                   text=True, **kwargs)
+        started.append(process)
+        return process
+
+    yield start
+    for process in started:
+        if process.poll() is None:
+            process.send_signal(signal.SIGTERM)
+            try:
+                process.wait(30)
+            except subprocess.TimeoutExpired:
+                process.kill()  # its children stop by themselves when it disappears
+                process.wait()

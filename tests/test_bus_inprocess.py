@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import logging
-import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -17,6 +16,7 @@ from dataclasses import dataclass, field
 import msgpack
 import pytest
 import torch
+from support import free_endpoint, wait_until
 
 from cloud_service.process import CloudService
 from cloud_service.sinr_mapping import RetrainConfig
@@ -34,12 +34,6 @@ from uav_agent.process import AgentService
 from world_sim.process import WorldConfig, WorldService
 
 torch.set_num_threads(1)
-
-
-def free_endpoint() -> str:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{probe.getsockname()[1]}"
 
 
 @dataclass
@@ -114,13 +108,6 @@ def running(scenario, tmp_path, *, mode: str, uavs: int, jammer: JammerInfo | No
             session.close()
         router.close()
     assert not any(thread.is_alive() for thread in threads)
-
-
-def wait_until(condition, timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.05)
 
 
 def eval_outcomes(capsys, method: str, episodes: int, uavs: int, seed: int, jammer: str):

@@ -7,65 +7,12 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
+from support import free_endpoint, gone, wait_until
 
 from jamnav.cli import main as jamnav
-
-ROOT = Path(__file__).resolve().parent.parent
-
-
-def free_endpoint() -> str:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{probe.getsockname()[1]}"
-
-
-def gone(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
-    except FileNotFoundError:
-        return True
-    return state == "Z"
-
-
-def wait_until(condition, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
-@pytest.fixture
-def supervisor():
-    """Start ``jamnav up`` in the background; whatever happens, stop it and its children."""
-    started: list[subprocess.Popen] = []
-
-    def start(*argv: str, **kwargs) -> subprocess.Popen:
-        env = dict(os.environ, PYTHONPATH=str(ROOT))
-        process = subprocess.Popen([sys.executable, "-m", "jamnav.cli", "up", *argv], env=env,
-                                   cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                   text=True, **kwargs)
-        started.append(process)
-        return process
-
-    yield start
-    for process in started:
-        if process.poll() is None:
-            process.send_signal(signal.SIGTERM)
-            try:
-                process.wait(30)
-            except subprocess.TimeoutExpired:
-                process.kill()  # its children stop by themselves when it disappears
-                process.wait()
 
 
 def run_json(capsys, *argv: str):
@@ -121,6 +68,8 @@ def test_a_running_system_is_controlled_restarts_a_dead_agent_and_stops_on_ctrl_
     wait_until(lambda: (pid := agent_pid(1)) and pid != first, 60, "agent 1 restarted")
     world = next(p for p in status() if p["role"] == "world")
     assert world["details"]["live_agents"] == 2
+    # Meanwhile the world flew UAV 1 on its last velocity, and counted the steps.
+    assert world["details"]["unattended_steps"] > 0
 
     code, out, err = run_json(capsys, "jammer", "set", "--x", "500", "--y", "0", "--power", "1",
                               "--endpoint", endpoint)

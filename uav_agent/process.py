@@ -29,10 +29,10 @@ import torch
 from shared import bus
 from shared.measurements import Measurement, MeasurementSpec, scenario_features
 from shared.messages import (
+    MAX_UPLOAD,
     Action,
     AgentObservation,
     JoinReply,
-    MeasurementUpload,
     ProcessStatus,
     SinrMap,
     ValueWeights,
@@ -48,6 +48,7 @@ from shared.policy import (
 )
 from shared.scenario import Scenario, ScenarioError, load_scenario
 from shared.topics import Topics, add_bus_arguments, endpoint_from
+from uav_agent.uploads import DEFAULT_CAPACITY, Outbox, Uploader
 
 ROLE = "agent"
 # A UAV hovering (or crawling) measures the same spot again and again: one measurement per
@@ -111,12 +112,10 @@ class Models:
 
 class AgentService:
     def __init__(self, session, topics: Topics, scenario: Scenario, uav: int,
-                 log: logging.Logger, upload_every: int = 16, upload_after: float = 1.0):
+                 log: logging.Logger, upload_every: int = 16, upload_after: float = 1.0,
+                 outbox: int = DEFAULT_CAPACITY):
         self.session, self.topics, self.scenario, self.uav, self.log = (
             session, topics, scenario, uav, log)
-        self.upload_every = upload_every
-        self.upload_after = upload_after
-        self.oldest_pending = 0.0
         self.models = Models(scenario, log)
         self.dropped = bus.Dropped(log)
         self.observations: queue.SimpleQueue = queue.SimpleQueue()
@@ -126,14 +125,15 @@ class AgentService:
         self.timings_us: deque[float] = deque(maxlen=TIMINGS_KEPT)
         self.cpu_us: deque[float] = deque(maxlen=TIMINGS_KEPT)
         self.decisions = 0
-        self.uploads = 0
         self.episode: int | None = None
         self.step: int | None = None
-        self.pending: list[Measurement] = []
+        self.upload_every = upload_every
+        self.outbox = Outbox(outbox)
+        self.uploader = Uploader(session, topics.measurements(uav), uav, self.outbox, log,
+                                 upload_every, upload_after)
         self.last_spot: tuple[float, float, int] | None = None
         self.nonce = secrets.token_hex(4)  # upload ids stay unique across restarts
         self.action_pub = bus.reliable_publisher(session, topics.action(uav), express=True)
-        self.upload_pub = bus.reliable_publisher(session, topics.measurements(uav))
         self._declared = [
             bus.subscribe(session, topics.observation(uav), AgentObservation,
                           self._on_observation, self.dropped),
@@ -156,7 +156,7 @@ class AgentService:
             role=ROLE, ident=str(self.uav), pid=os.getpid(), t=time.time(),
             episode=self.episode, step=self.step, value_version=self.models.value_version,
             sinr_version=self.models.sinr_version, dropped=self.dropped.as_dict(),
-            details={"decisions": self.decisions, "uploads": self.uploads,
+            details={"decisions": self.decisions, **self.uploader.counts(),
                      "decision_p50_us": float(p50), "decision_p99_us": float(p99),
                      "decision_cpu_p99_us": float(np.percentile(cpu, 99)),
                      "ready": self.models.ready},
@@ -182,12 +182,21 @@ class AgentService:
 
     # -- main loop --------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
+        """Fly until ``stop``, then hand the outbox over to the cloud before returning."""
+        sender = threading.Thread(target=self.uploader.run, args=(stop,), name="uploads")
+        sender.start()
+        try:
+            self._fly(stop)
+        finally:
+            stop.set()
+            sender.join()
+
+    def _fly(self, stop: threading.Event) -> None:
         while not stop.is_set():
             try:
                 received = [self.observations.get(timeout=0.2)]
-            except queue.Empty:  # idle (UAV landed, world paused): prepare maps, send uploads
+            except queue.Empty:  # idle (UAV landed, world paused): prepare the maps
                 self._take_updates()
-                self._upload(time.time())
                 continue
             while not self.observations.empty():  # behind (realtime): act on the newest
                 received.append(self.observations.get_nowait())
@@ -226,24 +235,10 @@ class AgentService:
             return
         self.last_spot = (x, y, level)
         features = scenario_features(self.scenario, np.array(observation.position))
-        now = time.time()
-        if not self.pending:
-            self.oldest_pending = now
-        self.pending.append(Measurement(
+        self.outbox.add(Measurement(
             id=f"{self.uav}-{self.nonce}-{observation.episode}-{observation.step}",
-            source=f"uav-{self.uav}", step=observation.step, time=now,
-            features=features.tolist(), level=observation.level))
-        self._upload(now)
-
-    def _upload(self, now: float) -> None:
-        """Send the pending measurements once there are enough (batches keep the message rate
-        down at speed) or the oldest has waited long enough (fresh data at slow clocks)."""
-        if self.pending and (len(self.pending) >= self.upload_every
-                             or now - self.oldest_pending >= self.upload_after):
-            self.upload_pub.put(encode(MeasurementUpload(uav=self.uav,
-                                                         measurements=self.pending)))
-            self.uploads += 1
-            self.pending = []
+            source=f"uav-{self.uav}", step=observation.step, time=time.time(),
+            features=features.tolist(), level=observation.level), self.upload_every)
 
 
 def join(session, topics: Topics, stop: threading.Event, log: logging.Logger) -> int | None:
@@ -266,6 +261,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="UAV to fly (default: ask the world for a free one)")
     parser.add_argument("--upload-every", type=int, default=16, metavar="N",
                         help="measurements per upload (or fewer, once the oldest is 1 s old)")
+    parser.add_argument("--outbox", type=int, default=DEFAULT_CAPACITY, metavar="N",
+                        help="measurements kept while the cloud does not acknowledge them "
+                             "(beyond that the oldest are dropped, and counted)")
     return parser
 
 
@@ -276,8 +274,10 @@ def main(argv: list[str] | None = None) -> int:
         scenario = load_scenario(args.scenario)
         if args.uav is not None and not 0 <= args.uav < 64:
             raise ValueError("--uav must be between 0 and 63")
-        if not 1 <= args.upload_every <= 256:
-            raise ValueError("--upload-every must be between 1 and 256")
+        if not 1 <= args.upload_every <= MAX_UPLOAD:
+            raise ValueError(f"--upload-every must be between 1 and {MAX_UPLOAD}")
+        if args.outbox < 1:
+            raise ValueError("--outbox must be at least 1")
         topics = Topics(args.prefix)
         endpoint = endpoint_from(args.endpoint)
     except (ScenarioError, ValueError, bus.BusError) as exc:
@@ -291,7 +291,8 @@ def main(argv: list[str] | None = None) -> int:
         uav = args.uav if args.uav is not None else join(session, topics, stop, log)
         if uav is None:
             return 0
-        agent = AgentService(session, topics, scenario, uav, log, args.upload_every)
+        agent = AgentService(session, topics, scenario, uav, log, args.upload_every,
+                             outbox=args.outbox)
         if agent.start(stop):
             agent.run(stop)
     return 0

@@ -1,0 +1,80 @@
+"""Faults injected into a running ``jamnav up`` (every role its own OS process): SIGKILL the
+cloud or the world mid-run. The supervisor restarts what died; the others keep flying, and
+every measurement the UAVs take reaches the cloud's memory exactly once."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+
+from support import free_endpoint, gone, wait_until
+
+from jamnav.cli import main as jamnav
+
+
+def statuses(capsys, endpoint: str) -> list[dict]:
+    code = jamnav(["status", "--json", "--endpoint", endpoint])
+    out = capsys.readouterr().out
+    return json.loads(out) if code == 0 else []
+
+
+def one(found: list[dict], role: str, ident: str = "0") -> dict | None:
+    return next((p for p in found if p["role"] == role and p["id"] == ident and "pid" in p),
+                None)
+
+
+def test_killed_cloud_comes_back_with_its_memory_and_no_measurement_is_lost(
+        supervisor, capsys, tmp_path):
+    endpoint, run_dir = free_endpoint(), tmp_path / "run"
+    process = supervisor("--uavs", "3", "--realtime", "--rate", "20", "--duration", "24",
+                         "--map", "perfect", "--no-figures", "--endpoint", endpoint,
+                         "--run-dir", str(run_dir))
+
+    def stored() -> int:
+        cloud = one(statuses(capsys, endpoint), "cloud")
+        return cloud["details"]["stored"] if cloud else 0
+
+    wait_until(lambda: stored() >= 50, 90, "measurements in the cloud's memory")
+    cloud = one(statuses(capsys, endpoint), "cloud")
+    os.kill(cloud["pid"], signal.SIGKILL)
+    restarted = wait_until(lambda: (c := one(statuses(capsys, endpoint), "cloud"))
+                           and c["pid"] != cloud["pid"] and c, 60, "the cloud restarted")
+    # It reloaded what it had stored before it was killed.
+    assert restarted["details"]["stored"] >= cloud["details"]["stored"]
+    out, err = process.communicate(timeout=120)
+    assert process.returncode == 0, err[-2000:]
+    report = json.loads((run_dir / "report.json").read_text())
+    assert report["restarts"] == {"router": 0, "world": 0, "cloud": 1, "agent": 0}
+    counts = report["measurements"]
+    # Agents went on flying during the outage, and their uploads found no cloud for a while.
+    assert report["missed_deadlines"] == 0 and counts["upload_failures"] > 0
+    assert counts["taken"] > 3 * cloud["details"]["stored"] // 3
+    # Exactly once: the memory's ids are unique, and it holds one row per measurement taken.
+    assert counts["buffered"] == counts["overflowed"] == counts["refused"] == 0
+    assert counts["in_memory"] == counts["taken"] == counts["acknowledged"]
+    assert all(gone(p["pid"]) for p in report["processes"])
+
+
+def test_killed_world_is_restarted_and_the_agents_fly_its_episodes(supervisor, capsys,
+                                                                   tmp_path):
+    endpoint, run_dir = free_endpoint(), tmp_path / "run"
+    process = supervisor("--uavs", "2", "--realtime", "--rate", "25", "--episodes", "4",
+                         "--map", "perfect", "--no-figures", "--endpoint", endpoint,
+                         "--run-dir", str(run_dir))
+    world = wait_until(lambda: (w := one(statuses(capsys, endpoint), "world"))
+                       and w["episode"] >= 1 and w, 120, "the first episode done")
+    agents_before = {p["id"]: p["details"]["decisions"] for p in statuses(capsys, endpoint)
+                     if p["role"] == "agent"}
+    os.kill(world["pid"], signal.SIGKILL)
+    out, err = process.communicate(timeout=180)
+    assert process.returncode == 0, err[-2000:]
+    report = json.loads((run_dir / "report.json").read_text())
+    assert report["restarts"] == {"router": 0, "world": 1, "cloud": 0, "agent": 0}
+    # The interrupted episode is flown again by the new world: four complete episodes.
+    assert report["episodes"] == 4 and len(report["outcomes"]) == 4
+    assert all(len(row) == 2 for row in report["outcomes"])
+    # The same agent processes flew on after the restart.
+    for ident, before in agents_before.items():
+        assert report["agents"][ident]["decisions"] > before
+    assert all(gone(p["pid"]) for p in report["processes"])
