@@ -54,7 +54,7 @@ from shared.networks import WeightsError, load_network, sha256
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario
 from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET
-from shared.topics import Topics, add_bus_arguments, endpoint_from
+from shared.topics import Topics, add_bus_arguments, endpoint_from, uav_in_key
 
 ROLE = "cloud"
 _VERSION_FILE = re.compile(r"^sinr_map_v(\d+)\.safetensors$")
@@ -160,7 +160,7 @@ class CloudService:
             if query.payload is None:
                 raise MessageError("upload without a payload")
             upload = decode(MeasurementUpload, query.payload.to_bytes())
-            if str(upload.uav) != self.topics.uav_of(str(query.key_expr)):
+            if str(upload.uav) != uav_in_key(query.key_expr):
                 raise MessageError(f"upload of uav {upload.uav} on {query.key_expr}")
         except MessageError as exc:
             self.dropped.add(key, str(exc))

@@ -269,6 +269,10 @@ class Supervisor:
         elif event.type == "change_detected":
             self._say(f"jammer change detected by the cloud (map v{event.version} right on "
                       f"{event.accuracy:.0%} of the last window)")
+        elif event.type == "weights_refused":
+            self._say(f"agent {event.uav} refused {event.weights} weights "
+                      f"v{event.version if event.version is not None else '?'} "
+                      f"({event.reason}); flying on v{event.flying_on}")
         elif event.type == "sinr_weights_published":
             self._say(f"SINR map v{event.version} published (held-out accuracy "
                       f"{event.accuracy:.1%})")

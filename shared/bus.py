@@ -22,7 +22,7 @@ from typing import Literal, TypeVar
 import zenoh
 
 from shared.messages import Message, MessageError, ProcessStatus, decode, encode
-from shared.topics import Topics
+from shared.topics import Topics, uav_in_key
 
 M = TypeVar("M", bound=Message)
 
@@ -119,12 +119,16 @@ class Dropped:
         self._lock = threading.Lock()
         self._log = log
 
-    def add(self, topic: str, reason: str) -> None:
+    def add(self, topic: str, reason: str) -> bool:
+        """Count a refusal; True when it is worth telling (logged: the first few, then one in
+        a thousand, so that a flood does not flood the log)."""
         with self._lock:
             self._counts[topic] += 1
             count = self._counts[topic]
-        if count <= 3 or count % 1000 == 0:  # a flood must not flood the log
+        tell = count <= 3 or count % 1000 == 0
+        if tell:
             self._log.warning("refused message #%d on %s: %s", count, topic, reason)
+        return tell
 
     def as_dict(self) -> dict[str, int]:
         with self._lock:
@@ -132,15 +136,22 @@ class Dropped:
 
 
 def subscribe(session: zenoh.Session, key: str, kind: type[M], on_message: Callable[[M], None],
-              dropped: Dropped) -> zenoh.Subscriber:
+              dropped: Dropped, on_refused: Callable[[str], None] | None = None
+              ) -> zenoh.Subscriber:
     """Subscribe to ``key`` and hand each valid ``kind`` message to ``on_message``, which runs
-    on zenoh's delivery thread and must return at once (store it or queue it)."""
+    on zenoh's delivery thread and must return at once (store it or queue it). A message about
+    a UAV must come on that UAV's key (``.../uav/<id>/...``): with access control, the key is
+    what says who sent it. Refusals are counted; ``on_refused`` hears those worth telling."""
 
     def callback(sample: zenoh.Sample) -> None:
         try:
             message = decode(kind, sample.payload.to_bytes())
+            uav = getattr(message, "uav", None)
+            if uav is not None and uav_in_key(sample.key_expr) not in (None, str(uav)):
+                raise MessageError(f"a message about uav {uav} on {sample.key_expr}")
         except MessageError as exc:
-            dropped.add(key, str(exc))
+            if dropped.add(key, str(exc)) and on_refused is not None:
+                on_refused(str(exc))
             return
         on_message(message)
 

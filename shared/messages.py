@@ -304,6 +304,17 @@ class RetrainFailed(_Event):
     error: str = Field(max_length=2000)
 
 
+class WeightsRefused(_Event):
+    """An agent refused a weights payload and flies on with its previous version."""
+
+    type: Literal["weights_refused"] = "weights_refused"
+    uav: UavId
+    weights: Literal["value", "sinr_map"]
+    version: Count | None  # None: the payload was not even a readable message
+    reason: str = Field(max_length=500)
+    flying_on: Count | None  # the version still in use
+
+
 class UavOutcomes(_Event):
     type: Literal["uav_outcomes"] = "uav_outcomes"
     episode: Count
@@ -322,8 +333,8 @@ class RunFinished(_Event):
 
 
 Event = Annotated[
-    JammerChanged | ChangeDetected | SinrWeightsPublished | RetrainFailed | UavOutcomes
-    | RunFinished,
+    JammerChanged | ChangeDetected | SinrWeightsPublished | RetrainFailed | WeightsRefused
+    | UavOutcomes | RunFinished,
     Field(discriminator="type"),
 ]
 _EVENTS: TypeAdapter[Event] = TypeAdapter(Event)

@@ -16,6 +16,7 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 ENDPOINT_ENV = "JAMNAV_ENDPOINT"
 DEFAULT_PREFIX = "jamnav"
 _PREFIX = re.compile(r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
+_UAV_KEY = re.compile(r"/uav/([^/]+)/")
 
 
 def endpoint_from(given: str | None = None) -> str:
@@ -32,6 +33,12 @@ def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--endpoint", default=None,
                         help=f"router (default ${ENDPOINT_ENV} or {DEFAULT_ENDPOINT})")
     parser.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix of the system")
+
+
+def uav_in_key(key: str) -> str | None:
+    """The UAV id of a ``.../uav/<id>/...`` key, as written (None for other keys)."""
+    found = _UAV_KEY.search(str(key))
+    return found.group(1) if found else None
 
 
 @dataclass(frozen=True)
@@ -95,10 +102,6 @@ class Topics:
 
     def last_chunk(self, key: str) -> str:
         return str(key).rsplit("/", 1)[-1]
-
-    def uav_of(self, key: str) -> str:
-        """The UAV id of a ``<prefix>/uav/<id>/...`` key (what a wildcard subscriber got)."""
-        return str(key)[len(self.prefix) + 1:].split("/")[1]
 
     def role_and_id(self, key: str) -> tuple[str, str]:
         """(role, id) from an ``alive`` or ``status`` key."""

@@ -26,9 +26,13 @@ from shared.messages import (
     JammerCommand,
     JammerInfo,
     JammerReply,
+    ValueWeights,
     decode,
     decode_event,
+    encode,
 )
+from shared.networks import load_network, save_bytes, sha256
+from shared.shipped import VALUE_NET
 from shared.topics import Topics
 from uav_agent.process import AgentService
 from world_sim.process import WorldConfig, WorldService
@@ -193,3 +197,37 @@ def test_a_live_jammer_swap_is_detected_and_answered_with_a_new_map(scenario, tm
         saved = tmp_path / "sinr_maps" / "sinr_map_v1.safetensors"
         assert published.path == str(saved.resolve()) and saved.is_file()
         wait_until(lambda: all(a.models.sinr_version == 1 for a in system.agents), 20)
+
+
+def test_an_agent_refuses_bad_weights_flies_on_with_the_old_ones_and_reports_it(scenario,
+                                                                               tmp_path):
+    with running(scenario, tmp_path, mode="perfect", uavs=1, jammer=None,
+                 episodes=None) as system:
+        system.wait_for("uav_outcomes", 60)
+        agent, session = system.agents[0], system.sessions[0]
+        served = load_network(VALUE_NET)[0]
+        good = {name: t.detach().clone() for name, t in served.state_dict().items()}
+        metadata = {"architecture": json.dumps(served.architecture())}
+        first = next(iter(good))
+
+        def payload(tensors: dict, version: int) -> bytes:
+            data = save_bytes(tensors, metadata=metadata)
+            return encode(ValueWeights(version=version, sha256=sha256(data), data=data))
+
+        tampered = msgpack.unpackb(payload(good, 7))
+        tampered["data"] = tampered["data"][:-1] + b"\x00"  # one byte altered in transit
+        session.put(system.topics.value_weights, msgpack.packb(tampered))
+        session.put(system.topics.value_weights,
+                    payload({**good, first: torch.cat([good[first], good[first][:1]])}, 8))
+        session.put(system.topics.value_weights,
+                    payload({**good, first: good[first].double()}, 9))  # wrong dtype
+        wait_until(lambda: len(system.of_type("weights_refused")) == 3, 20)
+        decisions = agent.decisions
+        wait_until(lambda: agent.decisions > decisions + 20, 20)  # still flying
+        assert agent.models.value_version == 1
+        assert agent.status().dropped[system.topics.value_weights] == 3
+    refusals = system.of_type("weights_refused")
+    assert [(r.version, r.weights, r.flying_on, r.uav) for r in refusals] == [
+        (None, "value", 1, 0), (8, "value", 1, 0), (9, "value", 1, 0)]
+    assert "sha256" in refusals[0].reason
+    assert "(35,)" in refusals[1].reason and "float64" in refusals[2].reason

@@ -36,6 +36,7 @@ from shared.messages import (
     ProcessStatus,
     SinrMap,
     ValueWeights,
+    WeightsRefused,
     encode,
 )
 from shared.networks import WeightsError, from_bytes
@@ -138,8 +139,9 @@ class AgentService:
             bus.subscribe(session, topics.observation(uav), AgentObservation,
                           self._on_observation, self.dropped),
             bus.subscribe(session, topics.value_weights, ValueWeights, self.updates.put,
-                          self.dropped),
-            bus.subscribe(session, topics.sinr_map, SinrMap, self.updates.put, self.dropped),
+                          self.dropped, lambda why: self.updates.put(("value", None, why))),
+            bus.subscribe(session, topics.sinr_map, SinrMap, self.updates.put, self.dropped,
+                          lambda why: self.updates.put(("sinr_map", None, why))),
             bus.serve_status(session, topics, ROLE, uav, self.status),
         ]
         self.token = None
@@ -207,14 +209,26 @@ class AgentService:
                 self._measure(seen)
 
     def _take_updates(self) -> None:
+        """New weights, checked; refusals (unreadable payloads, queued as (kind, None,
+        reason), or sound messages with unusable weights) are reported as events."""
         while not self.updates.empty():
             update = self.updates.get_nowait()
+            if isinstance(update, tuple):
+                self._report_refusal(*update)
+                continue
             try:
                 self.models.accept(update)
             except WeightsError as exc:
-                key = (self.topics.value_weights if isinstance(update, ValueWeights)
-                       else self.topics.sinr_map)
-                self.dropped.add(key, f"version {update.version} refused: {exc}")
+                kind = "value" if isinstance(update, ValueWeights) else "sinr_map"
+                key = self.topics.value_weights if kind == "value" else self.topics.sinr_map
+                if self.dropped.add(key, f"version {update.version} refused: {exc}"):
+                    self._report_refusal(kind, update.version, str(exc))
+
+    def _report_refusal(self, kind: str, version: int | None, reason: str) -> None:
+        flying_on = self.models.value_version if kind == "value" else self.models.sinr_version
+        bus.publish_event(self.session, self.topics, WeightsRefused(
+            t=time.time(), source=f"agent-{self.uav}", uav=self.uav, weights=kind,
+            version=version, reason=reason[:500], flying_on=flying_on))
 
     def _act(self, arrived: float, observation: AgentObservation) -> None:
         cpu = time.thread_time()
