@@ -31,7 +31,7 @@ import torch
 from cloud_service.rollout import RasterMaps
 from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights, RetrainConfig
 from cloud_service.sinr_memory import SinrMemory
-from shared import bus
+from shared import access, bus
 from shared.measurements import MeasurementSpec
 from shared.messages import (
     ChangeDetected,
@@ -57,6 +57,9 @@ from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET
 from shared.topics import Topics, add_bus_arguments, endpoint_from, uav_in_key
 
 ROLE = "cloud"
+# Measurements are stamped with the agent's clock: a stamp further ahead than this is a bad
+# clock or a forgery, and would stay "recent" in the memory for ever.
+CLOCK_SKEW_S = 60.0
 _VERSION_FILE = re.compile(r"^sinr_map_v(\d+)\.safetensors$")
 
 
@@ -162,9 +165,11 @@ class CloudService:
             upload = decode(MeasurementUpload, query.payload.to_bytes())
             if str(upload.uav) != uav_in_key(query.key_expr):
                 raise MessageError(f"upload of uav {upload.uav} on {query.key_expr}")
+            if max(m.time for m in upload.measurements) > time.time() + CLOCK_SKEW_S:
+                raise MessageError("upload with measurements from the future")
         except MessageError as exc:
             self.dropped.add(key, str(exc))
-            query.reply_err(str(exc).encode())
+            bus.refuse(query, str(exc))
             return
         self.tasks.put((upload, query))
 
@@ -304,10 +309,11 @@ def main(argv: list[str] | None = None) -> int:
             retrain = RetrainConfig(min_samples=args.retrain_samples)
         topics = Topics(args.prefix)
         endpoint = endpoint_from(args.endpoint)
+        login = access.login_for(args.credentials, access.CLOUD)
     except (ScenarioError, ValueError, bus.BusError) as exc:
         print(f"cloud: error: {exc}", file=sys.stderr)
         return 2
-    session, stop = bus.service_session("cloud", endpoint)
+    session, stop = bus.service_session("cloud", endpoint, login)
     if session is None:
         return 1
     with session:

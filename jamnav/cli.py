@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import re
 import sys
 from collections.abc import Sequence
@@ -18,7 +19,7 @@ import numpy as np
 
 from jamnav.cli_runtime import register as register_runtime
 from shared.radio import RadioModel
-from shared.scenario import Scenario, ScenarioError, load_scenario
+from shared.scenario import Scenario, ScenarioError, load_scenario, resolve_scenario_path
 from shared.shipped import EXTENDED_VALUE_NET, SINR_MAP_NO_JAMMER, VALUE_NET
 
 
@@ -35,6 +36,78 @@ class _Parser(argparse.ArgumentParser):
 
 
 # -- argument helpers -------------------------------------------------------------------------
+# Negative seeds fail deep in numpy; torch refuses seeds past 64 bits, and training adds
+# offsets to its seed, so stay well clear at 32 bits (numpy's legacy seed range).
+SEED_MAX = 2**32 - 1
+
+
+def _check_range(
+    option: str, value: float | None, low: float, high: float | None = None,
+    *, above: bool = False,
+) -> None:
+    """Refuse a count, rate or seed out of range before any work starts (deep inside, it
+    would fail as a traceback or run forever). NaN and infinities are never in range;
+    ``above`` excludes ``low`` itself."""
+    if value is None:  # an optional value left to its default
+        return
+    if math.isfinite(value) and (value > low if above else value >= low) and (
+        high is None or value <= high
+    ):
+        return
+    if above:
+        raise UsageError(f"{option} must be a finite number above {low:g}")
+    if high is None:
+        raise UsageError(f"{option} must be at least {low}")
+    raise UsageError(f"{option} must be between {low} and {high}")
+
+
+def _output_path(
+    option: str, text: str, *, directory: bool = False, beside: Sequence[str] = ()
+) -> Path:
+    """``text`` as where a command writes (a directory, or a file plus the files named by
+    ``beside`` suffixes), refused now if it cannot be written: the writing comes last, after
+    the work, which a late failure would throw away."""
+    path = Path(text)
+    if not directory:
+        for target in (path, *(path.with_suffix(suffix) for suffix in beside)):
+            if target.is_dir():
+                raise UsageError(f"{option} {text}: {target} is a directory")
+    existing = path if directory else path.parent
+    while not existing.exists() and not existing.is_symlink():  # a dangling link stops too
+        existing = existing.parent
+    if not existing.is_dir():
+        raise UsageError(f"{option} {text}: {existing} is not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise UsageError(f"{option} {text}: {existing} is not writable")
+    return path
+
+
+def _check_device(text: str) -> None:
+    """Only cpu and cuda[:N] are supported: torch.device also accepts names such as mps or
+    meta, which then fail as tracebacks deep inside training."""
+    import torch
+
+    try:
+        device = torch.device(text)
+    except RuntimeError:
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise UsageError(f"--device {text}: expected cpu, cuda or cuda:N")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UsageError(f"--device {text}: CUDA is not available on this machine")
+    if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():
+        raise UsageError(f"--device {text}: this machine has {torch.cuda.device_count()} "
+                         "CUDA device(s)")
+
+
+def _load_scenario(args: argparse.Namespace) -> Scenario:
+    """load_scenario, with a file that exists but cannot be read as one line too."""
+    try:
+        return load_scenario(args.scenario)
+    except OSError as exc:
+        raise UsageError(f"{resolve_scenario_path(args.scenario)}: {exc.strerror}") from None
+
+
 def _numbers(text: str, count: int, what: str) -> list[float]:
     parts = text.split(",")
     try:
@@ -64,7 +137,7 @@ def _add_jammer(parser: argparse.ArgumentParser) -> None:
 
 def scenario_with_jammer(args: argparse.Namespace) -> Scenario:
     """The scenario named by --scenario with --jammer/--no-jammer applied and validated."""
-    scenario = load_scenario(args.scenario)
+    scenario = _load_scenario(args)
     if getattr(args, "no_jammer", False):
         return scenario.without_jammer()
     if getattr(args, "jammer", None):
@@ -92,6 +165,8 @@ def _read_points(args: argparse.Namespace) -> np.ndarray:
         raise UsageError(f"--points-json {source}: {exc.strerror}") from None
     except json.JSONDecodeError as exc:
         raise UsageError(f"--points-json {source}: not valid JSON ({exc.msg})") from None
+    except UnicodeDecodeError:
+        raise UsageError(f"--points-json {source}: not UTF-8 text") from None
     points = []
     for item in data if isinstance(data, list) else [None]:
         if isinstance(item, dict) and {"x", "y"} <= item.keys():
@@ -99,7 +174,9 @@ def _read_points(args: argparse.Namespace) -> np.ndarray:
         if (
             not isinstance(item, list | tuple)
             or len(item) != 2
-            or not all(isinstance(v, int | float) and math.isfinite(v) for v in item)
+            # JSON true and false arrive as bool, a subclass of int
+            or not all(isinstance(v, int | float) and not isinstance(v, bool)
+                       and math.isfinite(v) for v in item)
         ):
             raise UsageError(
                 f"--points-json {source}: expected a list of [x, y] or {{\"x\", \"y\"}} "
@@ -111,7 +188,7 @@ def _read_points(args: argparse.Namespace) -> np.ndarray:
 
 # -- commands -----------------------------------------------------------------------------------
 def cmd_scenario_show(args: argparse.Namespace) -> int:
-    scenario = load_scenario(args.scenario)
+    scenario = _load_scenario(args)
     data = scenario.model_dump(mode="json")
     if args.json:
         print(json.dumps(data, indent=2))
@@ -169,7 +246,7 @@ def _sinr_from_model(args: argparse.Namespace) -> int:
     if args.jammer or args.no_jammer:
         raise UsageError("--model: the network is the map of the jammer it was trained for; "
                          "--jammer/--no-jammer do not apply")
-    scenario = load_scenario(args.scenario)
+    scenario = _load_scenario(args)
     network, _ = _load_sinr_map(args.model, scenario)
     points = _read_points(args)
     levels = predict_levels(network, scenario_features(scenario, points))
@@ -188,8 +265,8 @@ def cmd_map(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".png":
         raise UsageError(f"--out {args.out}: the map is written as PNG; name it *.png")
-    if not 20 <= args.resolution <= 2000:
-        raise UsageError("--resolution must be between 20 and 2000")
+    _output_path("--out", args.out)
+    _check_range("--resolution", args.resolution, 20, 2000)
     share = save_coverage_map(scenario, RadioModel.jammer_of(scenario), out, args.resolution)
     print(f"wrote {out} (covered {share:.1%} of the area)", file=sys.stderr)
     return 0
@@ -202,10 +279,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from jamnav.progress import ProgressBar
     from shared.paper import JammerSetting
 
-    if args.episodes < 1:
-        raise UsageError("--episodes must be at least 1")
-    if args.uavs is not None and not 1 <= args.uavs <= 64:
-        raise UsageError("--uavs must be between 1 and 64")
+    _check_range("--episodes", args.episodes, 1)
+    _check_range("--uavs", args.uavs, 1, 64)
+    _check_range("--seed", args.seed, 0, SEED_MAX)
     scenario = scenario_with_jammer(args)
     jammer = RadioModel.jammer_of(scenario)
     setting = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
@@ -238,13 +314,19 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_table(args: argparse.Namespace) -> int:
     import torch
 
-    from cloud_service.evaluation import EvaluationError, table_one, write_table
+    from cloud_service.evaluation import EvaluationError, load_policy, table_one, write_table
 
-    if args.episodes < 1:
-        raise UsageError("--episodes must be at least 1")
+    _check_range("--episodes", args.episodes, 1)
+    _check_range("--seed", args.seed, 0, SEED_MAX)
+    out = _output_path("--out", args.out, directory=True)
     torch.set_num_threads(1)
-    scenario = load_scenario(args.scenario)
+    scenario = _load_scenario(args)
     nets = {"paper": Path(args.model), "extended": Path(args.extended_model)}
+    for option, path in zip(("--model", "--extended-model"), nets.values(), strict=True):
+        try:  # each network first flies after hours of the others' runs
+            load_policy(scenario, path)
+        except EvaluationError as exc:
+            raise UsageError(f"{option}: {exc}") from None
     runs = 4 * 3 * len(nets)
     done = 0
 
@@ -258,24 +340,48 @@ def cmd_table(args: argparse.Namespace) -> int:
     except EvaluationError as exc:
         raise UsageError(f"table: {exc}") from None
     command = "jamnav " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["table"] else "jamnav table"
-    md_path, csv_path = write_table(rows, Path(args.out), command)
+    md_path, csv_path = write_table(rows, out, command)
     print(md_path.read_text(encoding="utf-8"))
     print(f"wrote {md_path} and {csv_path}", file=sys.stderr)
     return 0
 
 
+def _check_train_log(log: Path) -> None:
+    """The columns Fig. 2a plots, read as plot_reward_curve reads them."""
+    if not log.is_file():
+        raise UsageError(f"--train-log {log}: no such file (run jamnav train first)")
+    try:
+        with log.open(encoding="utf-8") as handle:
+            columns = handle.readline().strip().split(",")
+        missing = [name for name in ("episode", "mean_return", "straight_bound")
+                   if name not in columns]
+        if not missing:
+            np.genfromtxt(log, delimiter=",", names=True)  # rows cut short by a crash
+    except OSError as exc:
+        raise UsageError(f"--train-log {log}: {exc.strerror}") from None
+    except ValueError:  # UnicodeDecodeError is one too
+        raise UsageError(f"--train-log {log}: not readable as a CSV training log") from None
+    if missing:
+        raise UsageError(f"--train-log {log}: not a training log (no column "
+                         f"{', '.join(missing)})")
+
+
 def cmd_figures(args: argparse.Namespace) -> int:
 
-    from cloud_service.evaluation import EvaluationError, trajectories
+    from cloud_service.evaluation import EvaluationError, load_policy, trajectories
     from shared.paper import TABLE_I_JAMMERS
     from shared.plots import plot_reward_curve, save_trajectory_figure
 
     _one_torch_thread()
-    scenario = load_scenario(args.scenario)
-    out = Path(args.out)
+    _check_range("--seed", args.seed, 0, SEED_MAX)
+    out = _output_path("--out", args.out, directory=True)
+    scenario = _load_scenario(args)
     log = Path(args.train_log)
-    if not log.is_file():
-        raise UsageError(f"--train-log {log}: no such file (run jamnav train first)")
+    _check_train_log(log)
+    try:  # Fig. 3 flies it last, after the online-map simulation of Fig. 2b
+        load_policy(scenario, Path(args.model))
+    except EvaluationError as exc:
+        raise UsageError(f"--model: {exc}") from None
     plot_reward_curve(log, out / "fig2a_reward_curve.png")
     print(f"wrote {out / 'fig2a_reward_curve.png'}", file=sys.stderr)
     online_argv = ["online-map", "--out", str(out / "fig2b_online_map_accuracy.png"),
@@ -298,24 +404,52 @@ def cmd_figures(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_checkpoint(out: Path, scenario: Scenario, method: str) -> None:
+    """--resume continues a run; without a usable checkpoint train() would silently start
+    afresh (hours of ORCA and TD learning), or fail with a traceback while loading one of
+    another method or scenario."""
+    from cloud_service.value_training import Checkpoint
+    from shared.features import METHODS, joint_state_size
+    from shared.networks import WeightsError, from_bytes
+
+    checkpoint = Checkpoint(out)
+    if not checkpoint.exists():
+        raise UsageError(f"--resume: no checkpoint in {checkpoint.dir} "
+                         "(leave out --resume to start afresh)")
+    progress = checkpoint.dir / "progress.json"
+    try:
+        saved = json.loads(progress.read_text(encoding="utf-8")).get("config", {})
+        saved_method = saved.get("method") if isinstance(saved, dict) else None
+    except (OSError, ValueError, AttributeError):  # ValueError: not JSON, or not UTF-8
+        raise UsageError(f"--resume: {progress} is unreadable") from None
+    if saved_method is not None and saved_method != method:
+        raise UsageError(f"--resume: the checkpoint in {checkpoint.dir} is of --method "
+                         f"{saved_method}, not {method}")
+    weights = checkpoint.dir / "value.safetensors"
+    expected = {"kind": "value", "input_size": joint_state_size(scenario, METHODS[method])}
+    try:
+        from_bytes(weights.read_bytes(), expected=expected)
+    except OSError as exc:
+        raise UsageError(f"--resume: {weights}: {exc.strerror}") from None
+    except WeightsError as exc:
+        raise UsageError(f"--resume: {weights}: {exc}") from None
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from cloud_service.value_training import TrainConfig, train
     from jamnav.progress import ProgressBar
 
-    scenario = load_scenario(args.scenario)
-    for name in ("episodes", "envs"):
-        if getattr(args, name) < 1:
-            raise UsageError(f"--{name} must be at least 1")
-    if args.uavs is not None and not 1 <= args.uavs <= 64:
-        raise UsageError("--uavs must be between 1 and 64")
-    if args.device.startswith("cuda"):
-        import torch
-
-        if not torch.cuda.is_available():
-            raise UsageError(f"--device {args.device}: CUDA is not available on this machine")
+    scenario = _load_scenario(args)
+    _check_range("--episodes", args.episodes, 1)
+    _check_range("--envs", args.envs, 1)
+    _check_range("--uavs", args.uavs, 1, 64)
+    _check_range("--seed", args.seed, 0, SEED_MAX)
+    _check_device(args.device)
+    out = _output_path("--out", args.out, directory=True)
+    if args.resume:
+        _check_checkpoint(out, scenario, args.method)
     config = TrainConfig(episodes=args.episodes, envs=args.envs, uavs=args.uavs,
                          seed=args.seed, device=args.device, method=args.method)
-    out = Path(args.out)
     bar = ProgressBar("train", args.episodes)
 
     def progress(info: dict) -> None:
@@ -356,13 +490,14 @@ def cmd_fit_sinr(args: argparse.Namespace) -> int:
 
     _one_torch_thread()
     scenario = scenario_with_jammer(args)
-    if args.samples < 100:
-        raise UsageError("--samples must be at least 100")
-    if args.steps < 1:
-        raise UsageError("--steps must be at least 1")
+    # Simulating takes about 1.4 kB per sample: a million is 1.4 GB, far past the default.
+    _check_range("--samples", args.samples, 100, 1_000_000)
+    _check_range("--steps", args.steps, 1)
+    _check_range("--seed", args.seed, 0, SEED_MAX)
     out = Path(args.out)
     if out.suffix != ".safetensors":
         raise UsageError(f"--out {args.out}: name the weights file *.safetensors")
+    _output_path("--out", args.out, beside=(".json",))  # the card goes beside the weights
     bar = ProgressBar("fit-sinr", args.steps)
 
     def progress(step: int, accuracy: float) -> None:
@@ -382,14 +517,14 @@ def cmd_online_map(args: argparse.Namespace) -> int:
     from cloud_service.online_map_sim import Schedule, save_online_map_figure, simulate_online_map
 
     _one_torch_thread()
-    scenario = load_scenario(args.scenario)
+    scenario = _load_scenario(args)
     out = Path(args.out)
     if out.suffix.lower() != ".png":
         raise UsageError(f"--out {args.out}: the figure is written as PNG; name it *.png")
-    if not 1 <= args.uavs <= 10_000:
-        raise UsageError("--uavs must be between 1 and 10000")
-    if args.period <= 0:
-        raise UsageError("--period must be positive")
+    _output_path("--out", args.out, beside=(".json",))  # the timeline goes beside the figure
+    _check_range("--uavs", args.uavs, 1, 10_000)
+    _check_range("--period", args.period, 0, above=True)
+    _check_range("--seed", args.seed, 0, SEED_MAX)
     network, card = _load_sinr_map(args.model, scenario)
     if not isinstance(card.get("accuracy"), int | float):
         raise UsageError(f"--model {args.model}: its card states no accuracy")

@@ -56,6 +56,7 @@ def _positive(value: float | None, name: str) -> None:
 # -- up -----------------------------------------------------------------------------------------
 def cmd_up(args: argparse.Namespace) -> int:
     from jamnav.supervisor import UpConfig, up
+    from shared import access
     from shared.messages import JammerInfo
     from world_sim.process import initial_jammer
 
@@ -78,6 +79,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         raise _Refused("--retrain-samples must be at least 2")
     run_dir = Path(args.run_dir or time.strftime("runs/up-%Y%m%d-%H%M%S"))
     Topics(args.prefix)  # refuses a malformed prefix before anything starts
+    if args.credentials is not None:  # refuses a file without every role's login, too
+        access.load(args.credentials, access.roles(uavs))
     config = UpConfig(
         endpoint=endpoint_from(args.endpoint), run_dir=run_dir, prefix=args.prefix,
         scenario=args.scenario, uavs=uavs, episodes=args.episodes, duration=args.duration,
@@ -87,6 +90,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         swap_at=args.swap_jammer_at, swap_to=args.swap_to,
         retrain_samples=args.retrain_samples, figures=not args.no_figures,
         model=Path(args.model) if args.model else None,
+        secure=args.secure or args.credentials is not None,
+        credentials=Path(args.credentials) if args.credentials else None,
         command="jamnav " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["up"] else "jamnav up",
     )
     return up(config, scenario)
@@ -94,7 +99,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 # -- jammer -------------------------------------------------------------------------------------
 def cmd_jammer(args: argparse.Namespace) -> int:
-    from shared import bus
+    from shared import access, bus
     from shared.messages import JammerCommand, JammerReply
 
     if args.jammer_command == "set":
@@ -107,7 +112,8 @@ def cmd_jammer(args: argparse.Namespace) -> int:
     else:
         command = JammerCommand(action=args.jammer_command)
     topics = Topics(args.prefix)
-    with bus.open_session("client", endpoint_from(args.endpoint), 2000) as session:
+    login = access.login_for(args.credentials, access.OPERATOR)
+    with bus.open_session("client", endpoint_from(args.endpoint), 2000, login=login) as session:
         reply = bus.query(session, topics.jammer_control, JammerReply, command)
     print(json.dumps(reply.model_dump(mode="json")))
     if not reply.accepted:
@@ -136,12 +142,13 @@ def _describe(status) -> str:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from shared import bus
+    from shared import access, bus
     from shared.messages import MessageError, ProcessStatus, decode
 
     topics = Topics(args.prefix)
     endpoint = endpoint_from(args.endpoint)
-    with bus.open_session("client", endpoint, 2000) as session:
+    login = access.login_for(args.credentials, access.OPERATOR)
+    with bus.open_session("client", endpoint, 2000, login=login) as session:
         live = sorted(topics.role_and_id(str(r.ok.key_expr))
                       for r in session.liveliness().get(topics.alive(), timeout=2.0)
                       if r.ok is not None)
@@ -172,17 +179,25 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 # -- router -------------------------------------------------------------------------------------
 def cmd_router(args: argparse.Namespace) -> int:
-    from shared import bus
+    from shared import access, bus
 
     endpoint = endpoint_from(args.endpoint)
-    for other in args.connect:
+    for other in args.connect + args.listen:
         endpoint_from(other)
     topics = Topics(args.prefix)
+    guard = None
+    if args.credentials is not None:
+        if args.connect:
+            raise _Refused("--credentials with --connect: a secure system has a single router "
+                           "(its access rules would treat a linked router as one user)")
+        guard = access.Guard(access.load(args.credentials), args.prefix)
     stop = threading.Event()
     bus.stop_on_signals(stop)
-    with bus.open_session("router", endpoint, routers=tuple(args.connect)) as session:
+    with bus.open_session("router", endpoint, routers=tuple(args.connect), guard=guard,
+                          base_file=args.zenoh_config, listeners=tuple(args.listen)) as session:
         token = bus.declare_alive(session, topics, "router", args.id)
-        print(f"jamnav router listening on {endpoint}", file=sys.stderr, flush=True)
+        print(f"jamnav router listening on {', '.join([endpoint, *args.listen])}",
+              file=sys.stderr, flush=True)
         stop.wait()
         token.undeclare()
     return 0
@@ -224,6 +239,9 @@ def register(commands) -> None:
     up.add_argument("--retrain-samples", type=int, default=None, metavar="N",
                     help="post-change measurements the cloud retrains on (default: mapper's)")
     up.add_argument("--no-figures", action="store_true", help="skip the trajectory figures")
+    up.add_argument("--secure", action="store_true",
+                    help="logins and access rules enforced by the router; fresh credentials "
+                         "in DIR/credentials.json unless --credentials names a file")
     up.set_defaults(handler=_guarded(cmd_up))
 
     jammer = commands.add_parser("jammer", help="move, switch off or show the running jammer")
@@ -249,5 +267,11 @@ def register(commands) -> None:
     add_bus_arguments(router)
     router.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                         help="another host's router to link with (repeatable)")
+    router.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                        help="another endpoint to listen on, e.g. tls/0.0.0.0:7448 for the "
+                             "routers of other hosts (repeatable)")
     router.add_argument("--id", default="0", help="name in `jamnav status`")
+    router.add_argument("--zenoh-config", default=None, metavar="FILE",
+                        help="zenoh configuration to start from, e.g. TLS certificates for "
+                             "links between hosts (README, Security)")
     router.set_defaults(handler=_guarded(cmd_router))

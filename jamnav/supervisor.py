@@ -28,7 +28,7 @@ from typing import Any, TextIO
 
 import zenoh
 
-from shared import bus
+from shared import access, bus
 from shared.messages import (
     JammerCommand,
     JammerInfo,
@@ -74,6 +74,8 @@ class UpConfig:
     model: Path | None = None  # the value network the cloud serves
     figures: bool = True
     command: str = "jamnav up"
+    secure: bool = False  # logins and access rules enforced by the router
+    credentials: Path | None = None  # secure: this file, else fresh ones in run_dir
 
 
 @dataclass
@@ -130,6 +132,8 @@ class Supervisor:
         self.stopped_by = "end"
         self.world_status: ProcessStatus | None = None
         self.dropped = bus.Dropped(bus.setup_logging("supervisor"))
+        self.credentials_path = (config.credentials or config.run_dir / access.CREDENTIALS_FILE
+                                 ) if config.secure else None
         self._last_status = 0.0
         self._last_draw = 0.0
 
@@ -137,14 +141,15 @@ class Supervisor:
     def _argv(self, child: Child) -> list[str]:
         c, python = self.config, [sys.executable, "-m"]
         common = ["--endpoint", c.endpoint, "--prefix", c.prefix]
+        if self.credentials_path is not None:
+            common += ["--credentials", str(self.credentials_path)]
+        if child.role == "router":
+            return python + ["jamnav.cli", "router", *common]
         if c.scenario:
             common += ["--scenario", c.scenario]
         jammer = ["--no-jammer"] if self.jammer is None else [
             "--jammer", f"{self.jammer.x!r},{self.jammer.y!r},{self.jammer.power_w!r},"
                         f"{self.jammer.height_m!r}"]
-        if child.role == "router":
-            return python + ["jamnav.cli", "router", "--endpoint", c.endpoint,
-                             "--prefix", c.prefix]
         if child.role == "cloud":
             argv = python + ["cloud_service.process", *common, "--map", c.map,
                              "--run-dir", str(c.run_dir), *jammer]
@@ -370,9 +375,10 @@ class Supervisor:
         previous = {sig: signal.signal(sig, lambda *_: self.stop.set())
                     for sig in (signal.SIGINT, signal.SIGTERM)}
         statuses: list[ProcessStatus] = []
+        login = self._operator_login()
         try:
             self._start("router")
-            with bus.open_session("client", c.endpoint) as session:
+            with bus.open_session("client", c.endpoint, login=login) as session:
                 self._declared = [
                     session.declare_subscriber(self.topics.event("*"), self._on_event),
                     session.declare_subscriber(self.topics.state, self._on_state),
@@ -414,6 +420,17 @@ class Supervisor:
                 signal.signal(sig, handler)
         return self._report(statuses)
 
+    def _operator_login(self) -> access.Login | None:
+        """Secure: the supervisor logs in as the operator; without a given credentials file,
+        every role gets a fresh login, written (mode 0600) in the run directory."""
+        if self.credentials_path is None:
+            return None
+        if self.config.credentials is None:
+            access.save(access.generate(self.config.uavs), self.credentials_path)
+        self._say(f"secure: logins and access rules enforced by the router; credentials in "
+                  f"{self.credentials_path} (for jamnav status/jammer --credentials)")
+        return access.login_for(self.credentials_path, access.OPERATOR)
+
     def _report(self, statuses: list[ProcessStatus]) -> dict[str, Any]:
         c = self.config
         outcomes = [self.outcomes[k] for k in sorted(self.outcomes)]
@@ -437,6 +454,7 @@ class Supervisor:
             "map": c.map,
             "uavs": c.uavs,
             "seed": c.seed,
+            "secure": c.secure,
             "stopped_by": self.stopped_by,
             "processes": self.launched,
             "episodes": len(outcomes),
@@ -464,7 +482,8 @@ def measurement_counts(statuses: list[ProcessStatus]) -> dict[str, int | None]:
     cloud = next((s.details for s in statuses if s.role == "cloud"), None)
     counts: dict[str, int | None] = {
         name: sum(int(a.get(f"measurements_{name}") or 0) for a in agents)
-        for name in ("taken", "acknowledged", "buffered", "overflowed", "refused")}
+        for name in ("taken", "acknowledged", "buffered", "overflowed", "refused",
+                     "duplicates")}
     counts["upload_failures"] = sum(int(a.get("upload_failures") or 0) for a in agents)
     counts["in_memory"] = None if cloud is None else cloud.get("stored")
     return counts
@@ -552,4 +571,6 @@ def up(config: UpConfig, scenario: Scenario) -> int:
     print(summary_table(report))
     print(f"report: {path}" + (f", figures: {', '.join(report['figures'])}"
                                if report.get("figures") else ""))
+    if supervisor.credentials_path is not None:
+        print(f"credentials: {supervisor.credentials_path}")
     return 1 if report["stopped_by"] == "failure" else 0

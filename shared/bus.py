@@ -17,10 +17,12 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from typing import Literal, TypeVar
+from contextlib import nullcontext
+from typing import Any, Literal, TypeVar
 
 import zenoh
 
+from shared.access import Guard, Login
 from shared.messages import Message, MessageError, ProcessStatus, decode, encode
 from shared.topics import Topics, uav_in_key
 
@@ -42,17 +44,24 @@ class QueryRefused(BusError):
 
 def config(mode: Literal["router", "client"], endpoint: str,
            connect_timeout_ms: int = CONNECT_TIMEOUT_MS,
-           routers: tuple[str, ...] = ()) -> zenoh.Config:
-    """A router listens on ``endpoint`` (and links to other ``routers``, one per host); a
-    client connects to ``endpoint``."""
-    cfg = zenoh.Config()
+           routers: tuple[str, ...] = (), security: dict[str, Any] | None = None,
+           base_file: str | None = None, listeners: tuple[str, ...] = ()) -> zenoh.Config:
+    """A router listens on ``endpoint`` and the other ``listeners`` (and links to other
+    ``routers``, one per host); a client connects to ``endpoint``. ``security``: the settings
+    of ``shared.access`` (a client's login; a router's logins and access rules).
+    ``base_file``: a zenoh configuration file to start from (the TLS certificates of a link
+    between hosts); ours override it."""
+    try:
+        cfg = zenoh.Config() if base_file is None else zenoh.Config.from_file(base_file)
+    except zenoh.ZError as exc:  # bad input, not an absent system
+        raise ValueError(f"zenoh configuration {base_file}: {_one_line(exc)}") from None
     settings = {
         "mode": mode,
         "scouting/multicast/enabled": False,
         "scouting/delay": 0,
     }
     if mode == "router":
-        settings["listen/endpoints"] = [endpoint]
+        settings["listen/endpoints"] = [endpoint, *listeners]
         if routers:
             settings["connect/endpoints"] = list(routers)
     else:
@@ -60,23 +69,35 @@ def config(mode: Literal["router", "client"], endpoint: str,
         settings["connect/timeout_ms"] = connect_timeout_ms
         settings["connect/retry"] = {"period_init_ms": CONNECT_RETRY_MS, "period_max_ms": 1000,
                                      "period_increase_factor": 2}
-    for key, value in settings.items():
+    for key, value in {**settings, **(security or {})}.items():
         cfg.insert_json5(key, json.dumps(value))
     return cfg
 
 
+def _one_line(exc: zenoh.ZError) -> str:
+    """Zenoh's message on one line, without the source location it ends with."""
+    return re.sub(r" at /\S+$", "", " ".join(str(exc).split()))
+
+
 def open_session(mode: Literal["router", "client"], endpoint: str,
                  connect_timeout_ms: int = CONNECT_TIMEOUT_MS,
-                 routers: tuple[str, ...] = ()) -> zenoh.Session:
+                 routers: tuple[str, ...] = (), login: Login | None = None,
+                 guard: Guard | None = None, base_file: str | None = None,
+                 listeners: tuple[str, ...] = ()) -> zenoh.Session:
     """Open a session; close it (``with`` or ``close()``): a process with callback subscribers
-    that exits without closing its session never exits."""
-    cfg = config(mode, endpoint, connect_timeout_ms, routers)
-    try:
-        return zenoh.open(cfg)
-    except zenoh.ZError as exc:
-        what = "listen on" if mode == "router" else "reach a router at"
-        reason = re.sub(r" at /\S+$", "", str(exc).splitlines()[0])
-        raise BusError(f"cannot {what} {endpoint}: {reason}") from None
+    that exits without closing its session never exits. A client presents ``login``; a
+    router with a ``guard`` accepts only its logins and enforces its access rules."""
+    presented = {} if login is None else login.zenoh_settings()
+    with nullcontext({}) if guard is None else guard.zenoh_settings() as enforced:
+        cfg = config(mode, endpoint, connect_timeout_ms, routers, {**presented, **enforced},
+                     base_file, listeners)
+        try:
+            return zenoh.open(cfg)
+        except zenoh.ZError as exc:
+            what = "listen on" if mode == "router" else "reach a router at"
+            # A router refuses a login the way an absent router does: it never answers.
+            refused = f" (or it refused the login of {login.user!r})" if login else ""
+            raise BusError(f"cannot {what} {endpoint}{refused}: {_one_line(exc)}") from None
 
 
 def reliable_publisher(session: zenoh.Session, key: str, express: bool = False
@@ -158,6 +179,16 @@ def subscribe(session: zenoh.Session, key: str, kind: type[M], on_message: Calla
     return session.declare_subscriber(key, callback)
 
 
+# Error replies of our queryables start with this; zenoh's own (a "Timeout" from the router
+# or from this session) do not, and mean that the question may be asked again.
+REFUSAL = b"jamnav refused: "
+
+
+def refuse(query: zenoh.Query, reason: str) -> None:
+    """Answer ``query`` with an error that asking again will not change."""
+    query.reply_err(REFUSAL + reason.encode())
+
+
 def query(session: zenoh.Session, key: str, kind: type[M], payload: Message | None = None,
           timeout: float = 2.0) -> M:
     """The first valid reply of a query; QueryRefused if the only answers were errors,
@@ -167,7 +198,11 @@ def query(session: zenoh.Session, key: str, kind: type[M], payload: Message | No
     problem, refused = "no reply (is the system running?)", False
     for reply in replies:
         if reply.ok is None:
-            problem = f"error reply: {reply.err.payload.to_bytes().decode(errors='replace')}"
+            text = reply.err.payload.to_bytes()
+            if not text.startswith(REFUSAL):  # zenoh's own errors, such as "Timeout"
+                problem = f"no answer ({text[:100].decode(errors='replace')})"
+                continue
+            problem = f"refused: {text[len(REFUSAL):].decode(errors='replace')}"
             refused = True
             continue
         try:
@@ -212,14 +247,15 @@ def stop_on_signals(stop: threading.Event) -> None:
         threading.Thread(target=watch_parent, name="parent-watch", daemon=True).start()
 
 
-def service_session(role: str, endpoint: str) -> tuple[zenoh.Session | None, threading.Event]:
+def service_session(role: str, endpoint: str, login: Login | None = None
+                    ) -> tuple[zenoh.Session | None, threading.Event]:
     """What every process shell starts with: a stop event wired to signals and a client
-    session to the router. When the router cannot be reached, one line on stderr and no
-    session (the caller exits 1)."""
+    session to the router (logged in with ``login`` on a secure system). When the router
+    cannot be reached, one line on stderr and no session (the caller exits 1)."""
     stop = threading.Event()
     stop_on_signals(stop)
     try:
-        return open_session("client", endpoint), stop
+        return open_session("client", endpoint, login=login), stop
     except BusError as exc:
         print(f"{role}: error: {exc}", file=sys.stderr)
         return None, stop

@@ -35,6 +35,11 @@ Count = Annotated[int, Field(ge=0, le=2**62)]
 UavId = Annotated[int, Field(ge=0, lt=MAX_UAVS)]
 Level = Annotated[int, Field(ge=0, le=127)]
 XY = tuple[Finite, Finite]
+# What a UAV's own state may hold: far beyond any area and airframe, but small enough that the
+# features and the lookahead computed from it stay finite.
+Coordinate = Annotated[float, Field(ge=-1e6, le=1e6, allow_inf_nan=False)]
+Place = tuple[Coordinate, Coordinate]
+Physical = Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)]
 Text = Annotated[str, Field(min_length=1, max_length=200)]
 Digest = Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
 Accuracy = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
@@ -65,17 +70,17 @@ class AgentObservation(Message):
     episode: Count
     step: Count
     uav: UavId
-    position: XY
-    velocity: XY
-    heading: Finite
-    destination: XY
-    radius: Positive
-    max_speed: Positive
+    position: Place
+    velocity: Place
+    heading: Coordinate
+    destination: Place
+    radius: Physical
+    max_speed: Physical
     level: Level
     below_steps: Count
-    others_position: list[XY] = Field(max_length=MAX_UAVS - 1)
-    others_velocity: list[XY] = Field(max_length=MAX_UAVS - 1)
-    others_radius: list[Positive] = Field(max_length=MAX_UAVS - 1)
+    others_position: list[Place] = Field(max_length=MAX_UAVS - 1)
+    others_velocity: list[Place] = Field(max_length=MAX_UAVS - 1)
+    others_radius: list[Physical] = Field(max_length=MAX_UAVS - 1)
     others_present: list[bool] = Field(max_length=MAX_UAVS - 1)
 
     @model_validator(mode="after")

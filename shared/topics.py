@@ -29,10 +29,14 @@ def endpoint_from(given: str | None = None) -> str:
 
 
 def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
-    """--endpoint and --prefix: how every command and process finds its system."""
+    """--endpoint, --prefix and --credentials: how every command and process finds its
+    system and, on a secure one, logs in."""
     parser.add_argument("--endpoint", default=None,
                         help=f"router (default ${ENDPOINT_ENV} or {DEFAULT_ENDPOINT})")
     parser.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix of the system")
+    parser.add_argument("--credentials", default=None, metavar="PATH",
+                        help="a secure system's credentials file (`jamnav up --secure` writes "
+                             "one): log in as this command's role (a router enforces them)")
 
 
 def uav_in_key(key: str) -> str | None:

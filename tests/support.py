@@ -2,9 +2,29 @@
 
 from __future__ import annotations
 
+import logging
 import socket
+import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
+
+from cloud_service.process import CloudService
+from cloud_service.sinr_mapping import RetrainConfig
+from shared import bus
+from shared.messages import (
+    JammerCommand,
+    JammerInfo,
+    JammerReply,
+    MessageError,
+    decode,
+    decode_event,
+)
+from shared.topics import Topics
+from uav_agent.process import AgentService
+from world_sim.process import WorldConfig, WorldService
 
 
 def free_endpoint() -> str:
@@ -32,3 +52,84 @@ def wait_until(condition, timeout: float, what: str = "a condition", every: floa
             return value
         time.sleep(every)
     raise AssertionError(f"timed out waiting for {what}")
+
+
+@dataclass
+class System:
+    topics: Topics
+    events: list  # every event seen, in arrival order
+    world: WorldService
+    cloud: CloudService
+    agents: list[AgentService]
+    sessions: list = field(default_factory=list)
+    threads: list = field(default_factory=list)  # world, cloud, one per agent
+
+    def wait_for(self, kind: str, timeout: float, after: int = 0):
+        """The first ``kind`` event from index ``after`` of the event list on."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for event in self.events[after:]:
+                if event.type == kind:
+                    return event
+            time.sleep(0.05)
+        raise AssertionError(f"no {kind} event within {timeout} s")
+
+    def of_type(self, kind: str) -> list:
+        return [event for event in self.events if event.type == kind]
+
+    def jammer(self, command: JammerCommand | bytes) -> JammerReply:
+        """Ask the world; raw bytes show what it makes of a payload no model would build."""
+        if isinstance(command, JammerCommand):
+            return bus.query(self.sessions[0], self.topics.jammer_control, JammerReply, command)
+        replies = self.sessions[0].get(self.topics.jammer_control, payload=command, timeout=2)
+        return decode(JammerReply, next(iter(replies)).ok.payload.to_bytes())
+
+
+@contextmanager
+def running(scenario, tmp_path, *, mode: str, uavs: int, jammer: JammerInfo | None,
+            episodes: int | None, seed: int = 0, retrain: RetrainConfig | None = None
+            ) -> Iterator[System]:
+    endpoint, topics = free_endpoint(), Topics()
+    log = logging.getLogger("test-bus")
+    stop = threading.Event()
+    router = bus.open_session("router", endpoint)
+    sessions, threads = [], []
+    try:
+        def client():
+            sessions.append(bus.open_session("client", endpoint))
+            return sessions[-1]
+
+        monitor = client()
+        events: list = []
+
+        def on_event(sample) -> None:
+            try:
+                events.append(decode_event(sample.payload.to_bytes()))
+            except MessageError:  # the fuzz test sends junk here too
+                pass
+
+        monitor.declare_subscriber(topics.event("*"), on_event)
+        cloud = CloudService(client(), topics, scenario, mode, tmp_path, log, jammer=jammer,
+                             retrain=retrain)
+        world = WorldService(client(), topics, scenario,
+                             WorldConfig(uavs=uavs, seed=seed, episodes=episodes), jammer, log)
+        agents = [AgentService(client(), topics, scenario, uav, log) for uav in range(uavs)]
+
+        def fly(agent: AgentService) -> None:
+            if agent.start(stop):
+                agent.run(stop)
+
+        threads = [threading.Thread(target=cloud.run, args=(stop,)),
+                   threading.Thread(target=world.run, args=(stop,))]
+        threads += [threading.Thread(target=fly, args=(agent,)) for agent in agents]
+        for thread in threads:
+            thread.start()
+        yield System(topics, events, world, cloud, agents, sessions, threads)
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join(30)
+        for session in sessions:
+            session.close()
+        router.close()
+    assert not any(thread.is_alive() for thread in threads)

@@ -6,112 +6,24 @@ a live jammer swap."""
 from __future__ import annotations
 
 import json
-import logging
-import threading
-import time
-from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass, field
 
 import msgpack
 import pytest
 import torch
-from support import free_endpoint, wait_until
+from support import running, wait_until
 
-from cloud_service.process import CloudService
 from cloud_service.sinr_mapping import RetrainConfig
 from jamnav.cli import main as jamnav
-from shared import bus
 from shared.messages import (
     JammerCommand,
     JammerInfo,
-    JammerReply,
     ValueWeights,
-    decode,
-    decode_event,
     encode,
 )
 from shared.networks import load_network, save_bytes, sha256
 from shared.shipped import VALUE_NET
-from shared.topics import Topics
-from uav_agent.process import AgentService
-from world_sim.process import WorldConfig, WorldService
 
 torch.set_num_threads(1)
-
-
-@dataclass
-class System:
-    topics: Topics
-    events: list  # every event seen, in arrival order
-    world: WorldService
-    cloud: CloudService
-    agents: list[AgentService]
-    sessions: list = field(default_factory=list)
-
-    def wait_for(self, kind: str, timeout: float, after: int = 0):
-        """The first ``kind`` event from index ``after`` of the event list on."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            for event in self.events[after:]:
-                if event.type == kind:
-                    return event
-            time.sleep(0.05)
-        raise AssertionError(f"no {kind} event within {timeout} s")
-
-    def of_type(self, kind: str) -> list:
-        return [event for event in self.events if event.type == kind]
-
-    def jammer(self, command: JammerCommand | bytes) -> JammerReply:
-        """Ask the world; raw bytes show what it makes of a payload no model would build."""
-        if isinstance(command, JammerCommand):
-            return bus.query(self.sessions[0], self.topics.jammer_control, JammerReply, command)
-        replies = self.sessions[0].get(self.topics.jammer_control, payload=command, timeout=2)
-        return decode(JammerReply, next(iter(replies)).ok.payload.to_bytes())
-
-
-@contextmanager
-def running(scenario, tmp_path, *, mode: str, uavs: int, jammer: JammerInfo | None,
-            episodes: int | None, seed: int = 0, retrain: RetrainConfig | None = None
-            ) -> Iterator[System]:
-    endpoint, topics = free_endpoint(), Topics()
-    log = logging.getLogger("test-bus")
-    stop = threading.Event()
-    router = bus.open_session("router", endpoint)
-    sessions, threads = [], []
-    try:
-        def client():
-            sessions.append(bus.open_session("client", endpoint))
-            return sessions[-1]
-
-        monitor = client()
-        events: list = []
-        monitor.declare_subscriber(topics.event("*"),
-                                   lambda s: events.append(decode_event(s.payload.to_bytes())))
-        cloud = CloudService(client(), topics, scenario, mode, tmp_path, log, jammer=jammer,
-                             retrain=retrain)
-        world = WorldService(client(), topics, scenario,
-                             WorldConfig(uavs=uavs, seed=seed, episodes=episodes), jammer, log)
-        agents = [AgentService(client(), topics, scenario, uav, log) for uav in range(uavs)]
-
-        def fly(agent: AgentService) -> None:
-            if agent.start(stop):
-                agent.run(stop)
-
-        threads = [threading.Thread(target=cloud.run, args=(stop,)),
-                   threading.Thread(target=world.run, args=(stop,))]
-        threads += [threading.Thread(target=fly, args=(agent,)) for agent in agents]
-        for thread in threads:
-            thread.start()
-        yield System(topics, events, world, cloud, agents, sessions)
-    finally:
-        stop.set()
-        for thread in threads:
-            thread.join(30)
-        for session in sessions:
-            session.close()
-        router.close()
-    assert not any(thread.is_alive() for thread in threads)
 
 
 def eval_outcomes(capsys, method: str, episodes: int, uavs: int, seed: int, jammer: str):

@@ -13,6 +13,7 @@ other UAVs' positions and velocities, and the maps the cloud sends. Nothing else
 from __future__ import annotations
 
 import argparse
+import itertools
 import logging
 import math
 import os
@@ -26,7 +27,7 @@ from collections import deque
 import numpy as np
 import torch
 
-from shared import bus
+from shared import access, bus
 from shared.measurements import Measurement, MeasurementSpec, scenario_features
 from shared.messages import (
     MAX_UPLOAD,
@@ -133,7 +134,10 @@ class AgentService:
         self.uploader = Uploader(session, topics.measurements(uav), uav, self.outbox, log,
                                  upload_every, upload_after)
         self.last_spot: tuple[float, float, int] | None = None
-        self.nonce = secrets.token_hex(4)  # upload ids stay unique across restarts
+        # Measurement ids: this process's nonce and a count. Not (episode, step): a restarted
+        # world flies its interrupted episode again, and those are new measurements.
+        self.nonce = secrets.token_hex(4)
+        self.measured = itertools.count()
         self.action_pub = bus.reliable_publisher(session, topics.action(uav), express=True)
         self._declared = [
             bus.subscribe(session, topics.observation(uav), AgentObservation,
@@ -250,7 +254,7 @@ class AgentService:
         self.last_spot = (x, y, level)
         features = scenario_features(self.scenario, np.array(observation.position))
         self.outbox.add(Measurement(
-            id=f"{self.uav}-{self.nonce}-{observation.episode}-{observation.step}",
+            id=f"{self.uav}-{self.nonce}-{next(self.measured)}",
             source=f"uav-{self.uav}", step=observation.step, time=time.time(),
             features=features.tolist(), level=observation.level), self.upload_every)
 
@@ -294,11 +298,16 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("--outbox must be at least 1")
         topics = Topics(args.prefix)
         endpoint = endpoint_from(args.endpoint)
+        login = None
+        if args.credentials is not None:
+            if args.uav is None:
+                raise ValueError("--credentials needs --uav: an agent logs in as agent-<uav>")
+            login = access.login_for(args.credentials, access.agent_role(args.uav))
     except (ScenarioError, ValueError, bus.BusError) as exc:
         print(f"agent: error: {exc}", file=sys.stderr)
         return 2
     log = bus.setup_logging(f"agent-{'?' if args.uav is None else args.uav}")
-    session, stop = bus.service_session("agent", endpoint)
+    session, stop = bus.service_session("agent", endpoint, login)
     if session is None:
         return 1
     with session:

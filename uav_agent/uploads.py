@@ -145,5 +145,6 @@ class Uploader:
         o = self.outbox
         return {"measurements_taken": o.taken, "measurements_acknowledged": o.acknowledged,
                 "measurements_buffered": len(o), "measurements_overflowed": o.overflowed,
-                "measurements_refused": self.refused, "uploads": self.uploads,
+                "measurements_refused": self.refused,
+                "measurements_duplicates": self.duplicates, "uploads": self.uploads,
                 "upload_failures": self.failures}

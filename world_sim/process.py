@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import zenoh
 
-from shared import bus
+from shared import access, bus
 from shared.features import Observation
 from shared.messages import (
     Action,
@@ -242,7 +242,7 @@ class WorldService:
     def _on_join(self, query: zenoh.Query) -> None:
         uav = self.mailbox.hand_out()
         if uav is None:
-            query.reply_err(f"all {self.config.uavs} UAVs have an agent".encode())
+            bus.refuse(query, f"all {self.config.uavs} UAVs have an agent")
         else:
             query.reply(self.topics.join, encode(JoinReply(uav=uav)))
 
@@ -337,6 +337,9 @@ class WorldService:
             # known here, or its first observation could be lost.
             if uav < self.config.uavs and not bus.wait_matching(self.observation_pubs[uav], 2.0):
                 self.log.warning("agent %d is live but not subscribed", uav)
+            # A put right after the match is known can still be lost (seen in 1 of 6 tries);
+            # a moment later it never was.
+            time.sleep(0.05)
         observation = Observation.of_fleet(
             w.position, w.velocity, w.heading, w.destination, w.radius, w.max_speed, w.level,
             w.below_steps, w.active, w.steps)
@@ -429,10 +432,11 @@ def main(argv: list[str] | None = None) -> int:
                              start_timeout=args.start_timeout)
         topics = Topics(args.prefix)
         endpoint = endpoint_from(args.endpoint)
+        login = access.login_for(args.credentials, access.WORLD)
     except (ScenarioError, ValueError, bus.BusError) as exc:
         print(f"world: error: {exc}", file=sys.stderr)
         return 2
-    session, stop = bus.service_session("world", endpoint)
+    session, stop = bus.service_session("world", endpoint, login)
     if session is None:
         return 1
     with session:

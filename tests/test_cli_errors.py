@@ -1,0 +1,233 @@
+"""Every ``jamnav`` command refuses bad arguments with one line on stderr and exit 2 (1 for a
+system that cannot be reached), never a traceback, and before any heavy work: the heavy entry
+points are replaced by a trap, so a case that slips through fails instead of training."""
+
+from __future__ import annotations
+
+import json
+import re
+import socket
+
+import pytest
+
+from jamnav.cli import main
+from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET
+
+VALUE = str(VALUE_NET)
+SINR_MAP = str(SINR_MAP_NO_JAMMER)
+
+HEAVY = [
+    ("cloud_service.value_training", "train"),
+    ("cloud_service.evaluation", "run_episodes"),  # eval, table and figures fly with it
+    ("cloud_service.sinr_mapping", "fit_sinr_map"),
+    ("cloud_service.online_map_sim", "simulate_online_map"),
+    ("shared.plots", "save_coverage_map"),
+    ("shared.plots", "plot_reward_curve"),
+    ("jamnav.supervisor", "up"),
+]
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+# {tmp}: the test's directory; {file}: a regular file; {dir}, {tmp}/dir.png and
+# {tmp}/dir.safetensors: directories; {binary}: a file that is not UTF-8; {bools}: points
+# given as JSON booleans; {extended_run}, {broken_run}: checkpoints train --resume cannot use;
+# {port}: a free loopback port (no router behind it).
+CASES = [
+    # scenario show
+    (["scenario", "show", "--scenario", "nope"], 2),
+    (["scenario", "show", "--scenario", "{binary}"], 2),
+    (["scenario", "show", "--scenario", "{dir}"], 2),
+    (["scenario"], 2),
+    # sinr
+    (["sinr", "--at", "1,1", "--jammer", "1,2"], 2),
+    (["sinr", "--at", "1,1", "--jammer", "a,b,c"], 2),
+    (["sinr", "--at", "1,1", "--jammer", "nan,0,1"], 2),
+    (["sinr", "--at", "1,1", "--jammer", "0,0,inf"], 2),
+    (["sinr", "--at", "1,1", "--jammer", "0,0,-1"], 2),
+    (["sinr", "--at", "1,1", "--jammer", "1000,0,1"], 2),
+    (["sinr", "--at", "1,1", "--jammer", "0,0,1", "--no-jammer"], 2),
+    (["sinr", "--at", "nan,1"], 2),
+    (["sinr"], 2),
+    (["sinr", "--points-json", "{binary}"], 2),
+    (["sinr", "--points-json", "{dir}"], 2),
+    (["sinr", "--points-json", "{bools}"], 2),
+    (["sinr", "--at", "1,1", "--model", "{tmp}/missing.safetensors"], 2),
+    (["sinr", "--at", "1,1", "--model", "{binary}"], 2),
+    (["sinr", "--at", "1,1", "--model", VALUE], 2),
+    (["sinr", "--at", "1,1", "--model", SINR_MAP, "--jammer", "0,0,1"], 2),
+    # map
+    (["map", "--out", "{tmp}/map.jpg"], 2),
+    (["map", "--out", "{file}/map.png"], 2),
+    (["map", "--out", "{tmp}/dir.png"], 2),
+    (["map", "--out", "{tmp}/map.png", "--resolution", "0"], 2),
+    (["map", "--out", "{tmp}/map.png", "--resolution", "5000"], 2),
+    (["map", "--out", "{tmp}/map.png", "--jammer", "0,0,-1"], 2),
+    # eval
+    (["eval", "--episodes", "0"], 2),
+    (["eval", "--episodes", "-3"], 2),
+    (["eval", "--episodes", "nan"], 2),
+    (["eval", "--uavs", "0"], 2),
+    (["eval", "--uavs", "65"], 2),
+    (["eval", "--seed", "-1"], 2),
+    (["eval", "--seed", str(2**64)], 2),
+    (["eval", "--method", "magic"], 2),
+    (["eval", "--jammer", "0,0,1", "--no-jammer"], 2),
+    (["eval", "--jammer", "nan,0,1"], 2),
+    (["eval", "--model", "{tmp}/missing.safetensors", "--episodes", "1"], 2),
+    (["eval", "--model", SINR_MAP, "--episodes", "1"], 2),
+    (["eval", "--sinr-map", VALUE, "--episodes", "1"], 2),
+    (["eval", "--scenario", "nope"], 2),
+    # table
+    (["table", "--episodes", "0"], 2),
+    (["table", "--seed", "-1"], 2),
+    (["table", "--out", "{file}"], 2),
+    (["table", "--out", "{file}/sub", "--episodes", "1"], 2),
+    (["table", "--model", "{tmp}/missing.safetensors", "--out", "{tmp}/t"], 2),
+    (["table", "--extended-model", "{binary}", "--out", "{tmp}/t"], 2),
+    # figures
+    (["figures", "--seed", "-1", "--out", "{tmp}/f"], 2),
+    (["figures", "--out", "{file}"], 2),
+    (["figures", "--train-log", "{tmp}/missing.csv", "--out", "{tmp}/f"], 2),
+    (["figures", "--train-log", "{binary}", "--out", "{tmp}/f"], 2),
+    (["figures", "--train-log", "{file}", "--out", "{tmp}/f"], 2),
+    (["figures", "--model", "{tmp}/missing.safetensors", "--out", "{tmp}/f"], 2),
+    # train
+    (["train", "--episodes", "0", "--out", "{tmp}/r"], 2),
+    (["train", "--envs", "0", "--out", "{tmp}/r"], 2),
+    (["train", "--uavs", "0", "--out", "{tmp}/r"], 2),
+    (["train", "--uavs", "99", "--out", "{tmp}/r"], 2),
+    (["train", "--seed", "-1", "--out", "{tmp}/r"], 2),
+    (["train", "--device", "foo", "--out", "{tmp}/r"], 2),
+    (["train", "--device", "mps", "--out", "{tmp}/r"], 2),
+    (["train", "--device", "cuda:abc", "--out", "{tmp}/r"], 2),
+    (["train", "--device", "cuda:99", "--out", "{tmp}/r"], 2),
+    (["train", "--method", "magic"], 2),
+    (["train", "--out", "{file}"], 2),
+    (["train", "--out", "{file}/sub"], 2),
+    (["train", "--resume", "--out", "{tmp}/r"], 2),
+    (["train", "--resume", "--out", "{extended_run}"], 2),
+    (["train", "--resume", "--out", "{broken_run}"], 2),
+    (["train", "--scenario", "nope"], 2),
+    # fit-sinr
+    (["fit-sinr", "--out", "{tmp}/m.pt"], 2),
+    (["fit-sinr", "--out", "{tmp}/m.safetensors", "--samples", "0"], 2),
+    (["fit-sinr", "--out", "{tmp}/m.safetensors", "--samples", str(10**12)], 2),
+    (["fit-sinr", "--out", "{tmp}/m.safetensors", "--steps", "0"], 2),
+    (["fit-sinr", "--out", "{tmp}/m.safetensors", "--seed", "-1"], 2),
+    (["fit-sinr", "--out", "{tmp}/m.safetensors", "--jammer", "a,b,c"], 2),
+    (["fit-sinr", "--out", "{file}/m.safetensors"], 2),
+    (["fit-sinr", "--out", "{tmp}/dir.safetensors"], 2),
+    (["fit-sinr"], 2),
+    # online-map
+    (["online-map", "--out", "{tmp}/o.jpg"], 2),
+    (["online-map", "--out", "{tmp}/o.png", "--uavs", "0"], 2),
+    (["online-map", "--out", "{tmp}/o.png", "--period", "0"], 2),
+    (["online-map", "--out", "{tmp}/o.png", "--period", "nan"], 2),
+    (["online-map", "--out", "{tmp}/o.png", "--period", "inf"], 2),
+    (["online-map", "--out", "{tmp}/o.png", "--seed", "-1"], 2),
+    (["online-map", "--out", "{tmp}/o.png", "--model", "{tmp}/missing.safetensors"], 2),
+    (["online-map", "--out", "{tmp}/o.png", "--model", VALUE], 2),
+    (["online-map", "--out", "{file}/o.png"], 2),
+    (["online-map", "--out", "{tmp}/dir.png"], 2),
+    # runtime commands (jamnav/cli_runtime.py)
+    (["up", "--uavs", "0"], 2),
+    (["up", "--episodes", "0"], 2),
+    (["up", "--rate", "nan"], 2),
+    (["up", "--duration", "inf"], 2),
+    (["up", "--episodes", "1", "--duration", "5"], 2),
+    (["up", "--jammer", "1,2"], 2),
+    (["up", "--jammer", "999,0,1"], 2),
+    (["up", "--swap-to", "0,0,-1"], 2),
+    (["up", "--model", "{tmp}/missing.safetensors"], 2),
+    (["up", "--retrain-samples", "1"], 2),
+    (["up", "--prefix", "bad prefix"], 2),
+    (["up", "--endpoint", "nonsense"], 2),
+    (["jammer", "set", "--x", "0", "--y", "0", "--power", "nan"], 2),
+    (["jammer", "set", "--x", "0", "--y", "0", "--power", "-1"], 2),
+    (["jammer", "set", "--x", "0", "--y", "0", "--power", "1", "--height", "-1"], 2),
+    (["jammer", "set", "--x", "0", "--y", "0"], 2),
+    (["jammer", "off", "--endpoint", "nonsense"], 2),
+    (["jammer"], 2),
+    (["status", "--endpoint", "nonsense"], 2),
+    (["status", "--prefix", ""], 2),
+    (["status", "--endpoint", "tcp/127.0.0.1:{port}"], 1),
+    (["router", "--endpoint", "nonsense"], 2),
+    (["router", "--connect", "nonsense", "--endpoint", "tcp/127.0.0.1:{port}"], 2),
+]
+
+
+@pytest.fixture
+def places(tmp_path, monkeypatch):
+    """Files for the cases, the test's directory as working directory (where default outputs
+    would go) and every heavy entry point trapped."""
+    for module, name in HEAVY:
+        def trap(*_args, _name=name, **_kwargs):
+            raise AssertionError(f"{_name} was reached: the arguments were not refused first")
+
+        monkeypatch.setattr(f"{module}.{name}", trap)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "file").write_text("not a directory\n")
+    for name in ("dir", "dir.png", "dir.safetensors"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "binary").write_bytes(b"\xff\xfe\x00\x81 not text")
+    (tmp_path / "bools.json").write_text(json.dumps([[True, False]]))
+    extended = tmp_path / "extended_run" / "checkpoint"
+    extended.mkdir(parents=True)
+    (extended / "progress.json").write_text(json.dumps({"config": {"method": "extended"}}))
+    broken = tmp_path / "broken_run" / "checkpoint"
+    broken.mkdir(parents=True)
+    (broken / "progress.json").write_text(json.dumps({"config": {"method": "paper"}}))
+    (broken / "value.safetensors").write_bytes(b"truncated")
+    return {
+        "tmp": str(tmp_path), "file": str(tmp_path / "file"), "dir": str(tmp_path / "dir"),
+        "binary": str(tmp_path / "binary"), "bools": str(tmp_path / "bools.json"),
+        "extended_run": str(tmp_path / "extended_run"),
+        "broken_run": str(tmp_path / "broken_run"), "port": str(_free_port()),
+    }
+
+
+USAGE_ERROR = re.compile(r"^jamnav( [\w-]+)*: error: \S")
+
+
+@pytest.mark.parametrize(("argv", "code"), CASES, ids=[" ".join(a) for a, _ in CASES])
+def test_bad_arguments_are_refused_in_one_line(capsys, places, argv, code):
+    argv = [part.format(**places) for part in argv]
+    try:
+        got = main(argv)
+    except SystemExit as exc:  # argparse's own usage errors
+        got = exc.code
+    out, err = capsys.readouterr()
+    assert got == code, err
+    assert "Traceback" not in err and out == ""
+    lines = err.splitlines()
+    assert lines, "no message"
+    if lines[0].startswith("usage:"):
+        assert USAGE_ERROR.match(lines[-1]), err
+        assert all(line.startswith(("usage:", " ")) for line in lines[:-1]), err
+    else:
+        assert len(lines) == 1 and lines[0].startswith("jamnav: error: "), err
+
+
+def test_an_environment_endpoint_is_checked_too(capsys, monkeypatch):
+    monkeypatch.setenv("JAMNAV_ENDPOINT", "nonsense")
+    assert main(["status"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jamnav: error: endpoint 'nonsense'") and err.count("\n") == 1
+
+
+def test_a_scenario_that_cannot_be_read_is_one_line(capsys, monkeypatch):
+    """Permissions cannot be taken away from root, so the read itself is made to fail."""
+    import shared.scenario
+
+    def unreadable(*_args, **_kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(shared.scenario.Path, "read_text", unreadable)
+    assert main(["scenario", "show"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jamnav: error: ") and err.endswith("icc2021.toml: Permission denied\n")
