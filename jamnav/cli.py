@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import re
 import sys
 from collections.abc import Sequence
@@ -17,14 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from jamnav.arguments import SEED_MAX, UsageError, check_range, output_path
 from jamnav.cli_runtime import register as register_runtime
 from shared.radio import RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario, resolve_scenario_path
 from shared.shipped import EXTENDED_VALUE_NET, SINR_MAP_NO_JAMMER, VALUE_NET
-
-
-class UsageError(Exception):
-    """A problem with the user's input, reported as one line."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -36,52 +32,6 @@ class _Parser(argparse.ArgumentParser):
 
 
 # -- argument helpers -------------------------------------------------------------------------
-# Negative seeds fail deep in numpy; torch refuses seeds past 64 bits, and training adds
-# offsets to its seed, so stay well clear at 32 bits (numpy's legacy seed range).
-SEED_MAX = 2**32 - 1
-
-
-def _check_range(
-    option: str, value: float | None, low: float, high: float | None = None,
-    *, above: bool = False,
-) -> None:
-    """Refuse a count, rate or seed out of range before any work starts (deep inside, it
-    would fail as a traceback or run forever). NaN and infinities are never in range;
-    ``above`` excludes ``low`` itself."""
-    if value is None:  # an optional value left to its default
-        return
-    if math.isfinite(value) and (value > low if above else value >= low) and (
-        high is None or value <= high
-    ):
-        return
-    if above:
-        raise UsageError(f"{option} must be a finite number above {low:g}")
-    if high is None:
-        raise UsageError(f"{option} must be at least {low}")
-    raise UsageError(f"{option} must be between {low} and {high}")
-
-
-def _output_path(
-    option: str, text: str, *, directory: bool = False, beside: Sequence[str] = ()
-) -> Path:
-    """``text`` as where a command writes (a directory, or a file plus the files named by
-    ``beside`` suffixes), refused now if it cannot be written: the writing comes last, after
-    the work, which a late failure would throw away."""
-    path = Path(text)
-    if not directory:
-        for target in (path, *(path.with_suffix(suffix) for suffix in beside)):
-            if target.is_dir():
-                raise UsageError(f"{option} {text}: {target} is a directory")
-    existing = path if directory else path.parent
-    while not existing.exists() and not existing.is_symlink():  # a dangling link stops too
-        existing = existing.parent
-    if not existing.is_dir():
-        raise UsageError(f"{option} {text}: {existing} is not a directory")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise UsageError(f"{option} {text}: {existing} is not writable")
-    return path
-
-
 def _check_device(text: str) -> None:
     """Only cpu and cuda[:N] are supported: torch.device also accepts names such as mps or
     meta, which then fail as tracebacks deep inside training."""
@@ -265,8 +215,8 @@ def cmd_map(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".png":
         raise UsageError(f"--out {args.out}: the map is written as PNG; name it *.png")
-    _output_path("--out", args.out)
-    _check_range("--resolution", args.resolution, 20, 2000)
+    output_path("--out", args.out)
+    check_range("--resolution", args.resolution, 20, 2000)
     share = save_coverage_map(scenario, RadioModel.jammer_of(scenario), out, args.resolution)
     print(f"wrote {out} (covered {share:.1%} of the area)", file=sys.stderr)
     return 0
@@ -279,9 +229,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from jamnav.progress import ProgressBar
     from shared.paper import JammerSetting
 
-    _check_range("--episodes", args.episodes, 1)
-    _check_range("--uavs", args.uavs, 1, 64)
-    _check_range("--seed", args.seed, 0, SEED_MAX)
+    check_range("--episodes", args.episodes, 1)
+    check_range("--uavs", args.uavs, 1, 64)
+    check_range("--seed", args.seed, 0, SEED_MAX)
     scenario = scenario_with_jammer(args)
     jammer = RadioModel.jammer_of(scenario)
     setting = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
@@ -316,9 +266,9 @@ def cmd_table(args: argparse.Namespace) -> int:
 
     from cloud_service.evaluation import EvaluationError, load_policy, table_one, write_table
 
-    _check_range("--episodes", args.episodes, 1)
-    _check_range("--seed", args.seed, 0, SEED_MAX)
-    out = _output_path("--out", args.out, directory=True)
+    check_range("--episodes", args.episodes, 1)
+    check_range("--seed", args.seed, 0, SEED_MAX)
+    out = output_path("--out", args.out, directory=True)
     torch.set_num_threads(1)
     scenario = _load_scenario(args)
     nets = {"paper": Path(args.model), "extended": Path(args.extended_model)}
@@ -373,8 +323,8 @@ def cmd_figures(args: argparse.Namespace) -> int:
     from shared.plots import plot_reward_curve, save_trajectory_figure
 
     _one_torch_thread()
-    _check_range("--seed", args.seed, 0, SEED_MAX)
-    out = _output_path("--out", args.out, directory=True)
+    check_range("--seed", args.seed, 0, SEED_MAX)
+    out = output_path("--out", args.out, directory=True)
     scenario = _load_scenario(args)
     log = Path(args.train_log)
     _check_train_log(log)
@@ -440,12 +390,12 @@ def cmd_train(args: argparse.Namespace) -> int:
     from jamnav.progress import ProgressBar
 
     scenario = _load_scenario(args)
-    _check_range("--episodes", args.episodes, 1)
-    _check_range("--envs", args.envs, 1)
-    _check_range("--uavs", args.uavs, 1, 64)
-    _check_range("--seed", args.seed, 0, SEED_MAX)
+    check_range("--episodes", args.episodes, 1)
+    check_range("--envs", args.envs, 1)
+    check_range("--uavs", args.uavs, 1, 64)
+    check_range("--seed", args.seed, 0, SEED_MAX)
     _check_device(args.device)
-    out = _output_path("--out", args.out, directory=True)
+    out = output_path("--out", args.out, directory=True)
     if args.resume:
         _check_checkpoint(out, scenario, args.method)
     config = TrainConfig(episodes=args.episodes, envs=args.envs, uavs=args.uavs,
@@ -491,13 +441,13 @@ def cmd_fit_sinr(args: argparse.Namespace) -> int:
     _one_torch_thread()
     scenario = scenario_with_jammer(args)
     # Simulating takes about 1.4 kB per sample: a million is 1.4 GB, far past the default.
-    _check_range("--samples", args.samples, 100, 1_000_000)
-    _check_range("--steps", args.steps, 1)
-    _check_range("--seed", args.seed, 0, SEED_MAX)
+    check_range("--samples", args.samples, 100, 1_000_000)
+    check_range("--steps", args.steps, 1)
+    check_range("--seed", args.seed, 0, SEED_MAX)
     out = Path(args.out)
     if out.suffix != ".safetensors":
         raise UsageError(f"--out {args.out}: name the weights file *.safetensors")
-    _output_path("--out", args.out, beside=(".json",))  # the card goes beside the weights
+    output_path("--out", args.out, beside=(".json",))  # the card goes beside the weights
     bar = ProgressBar("fit-sinr", args.steps)
 
     def progress(step: int, accuracy: float) -> None:
@@ -521,10 +471,10 @@ def cmd_online_map(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".png":
         raise UsageError(f"--out {args.out}: the figure is written as PNG; name it *.png")
-    _output_path("--out", args.out, beside=(".json",))  # the timeline goes beside the figure
-    _check_range("--uavs", args.uavs, 1, 10_000)
-    _check_range("--period", args.period, 0, above=True)
-    _check_range("--seed", args.seed, 0, SEED_MAX)
+    output_path("--out", args.out, beside=(".json",))  # the timeline goes beside the figure
+    check_range("--uavs", args.uavs, 1, 10_000)
+    check_range("--period", args.period, 0, above=True)
+    check_range("--seed", args.seed, 0, SEED_MAX)
     network, card = _load_sinr_map(args.model, scenario)
     if not isinstance(card.get("accuracy"), int | float):
         raise UsageError(f"--model {args.model}: its card states no accuracy")

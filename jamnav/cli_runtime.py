@@ -11,20 +11,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
+import re
 import sys
 import threading
 import time
 from pathlib import Path
 
+from jamnav.arguments import SEED_MAX, UsageError, check_range, output_path
 from shared.scenario import ScenarioError, load_scenario
 from shared.topics import Topics, add_bus_arguments, endpoint_from
 
 DEFAULT_SWAP_TO = "25,-10,1"  # Table I's second setting
-
-
-class _Refused(Exception):
-    """Bad input (exit 2)."""
+DEFAULT_RATE = 10.0
+_ROUTER_ID = re.compile(r"^[A-Za-z0-9_-]+$")
 
 
 def _fail(message: str, code: int) -> int:
@@ -40,7 +39,7 @@ def _guarded(handler):
 
         try:
             return handler(args)
-        except (_Refused, ScenarioError, ValueError) as exc:
+        except (UsageError, ScenarioError, ValueError) as exc:
             return _fail(str(exc), 2)
         except bus.BusError as exc:
             return _fail(str(exc), 1)
@@ -48,12 +47,19 @@ def _guarded(handler):
     return run
 
 
-def _positive(value: float | None, name: str) -> None:
-    if value is not None and not (math.isfinite(value) and value > 0):
-        raise _Refused(f"--{name} must be a positive number")
-
-
 # -- up -----------------------------------------------------------------------------------------
+def _check_value_network(path: str, scenario) -> None:
+    """The file must be a value network this scenario's agents can fly with: found out now,
+    not by a cloud that refuses to start once everything runs."""
+    from shared.networks import WeightsError, load_network
+    from shared.policy import LookaheadPolicy
+
+    try:
+        LookaheadPolicy(scenario, load_network(Path(path), {"kind": "value"})[0])
+    except WeightsError as exc:
+        raise UsageError(f"--model {path}: {exc}") from None
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from jamnav.supervisor import UpConfig, up
     from shared import access
@@ -62,32 +68,39 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     scenario = load_scenario(args.scenario)
     uavs = scenario.missions.uav_count if args.uavs is None else args.uavs
-    if not 1 <= uavs <= 64:
-        raise _Refused("--uavs must be between 1 and 64")
-    if args.episodes is not None and args.episodes < 1:
-        raise _Refused("--episodes must be at least 1")
+    check_range("--uavs", uavs, 1, 64)
+    check_range("--episodes", args.episodes, 1)
+    check_range("--seed", args.seed, 0, SEED_MAX)
     for name in ("duration", "rate", "deadline", "swap_jammer_at"):
-        _positive(getattr(args, name), name.replace("_", "-"))
+        check_range(f"--{name.replace('_', '-')}", getattr(args, name), 0, above=True)
+    if args.rate is not None and not args.realtime:
+        raise UsageError("--rate sets the pace of --realtime; a lockstep run goes as fast as "
+                         "its agents (see --deadline)")
     initial_jammer(scenario, args.jammer, args.no_jammer)
-    if args.swap_to != "off":
-        swap = JammerInfo.parse(args.swap_to, scenario.jammer.height_m)
+    if args.swap_to is not None and args.swap_jammer_at is None:
+        raise UsageError("--swap-to says where --swap-jammer-at moves the jammer: give both")
+    swap_to = args.swap_to or DEFAULT_SWAP_TO
+    if swap_to != "off":
+        swap = JammerInfo.parse(swap_to, scenario.jammer.height_m)
         if not scenario.area.contains(swap.x, swap.y):
-            raise _Refused(f"--swap-to {args.swap_to!r}: position outside the area")
-    if args.model is not None and not Path(args.model).is_file():
-        raise _Refused(f"--model {args.model}: no such file")
-    if args.retrain_samples is not None and args.retrain_samples < 2:
-        raise _Refused("--retrain-samples must be at least 2")
-    run_dir = Path(args.run_dir or time.strftime("runs/up-%Y%m%d-%H%M%S"))
+            raise UsageError(f"--swap-to {swap_to!r}: position outside the area")
+    if args.model is not None:
+        _check_value_network(args.model, scenario)
+    check_range("--retrain-samples", args.retrain_samples, 2)
+    run_dir = output_path("--run-dir", args.run_dir or time.strftime("runs/up-%Y%m%d-%H%M%S"),
+                          directory=True)
+    if args.report:
+        output_path("--report", args.report)
     Topics(args.prefix)  # refuses a malformed prefix before anything starts
     if args.credentials is not None:  # refuses a file without every role's login, too
         access.load(args.credentials, access.roles(uavs))
     config = UpConfig(
         endpoint=endpoint_from(args.endpoint), run_dir=run_dir, prefix=args.prefix,
         scenario=args.scenario, uavs=uavs, episodes=args.episodes, duration=args.duration,
-        clock="realtime" if args.realtime else "lockstep", rate=args.rate,
+        clock="realtime" if args.realtime else "lockstep", rate=args.rate or DEFAULT_RATE,
         deadline=args.deadline, map=args.map, jammer=args.jammer, no_jammer=args.no_jammer,
         seed=args.seed, report=Path(args.report) if args.report else None,
-        swap_at=args.swap_jammer_at, swap_to=args.swap_to,
+        swap_at=args.swap_jammer_at, swap_to=swap_to,
         retrain_samples=args.retrain_samples, figures=not args.no_figures,
         model=Path(args.model) if args.model else None,
         secure=args.secure or args.credentials is not None,
@@ -107,8 +120,8 @@ def cmd_jammer(args: argparse.Namespace) -> int:
             command = JammerCommand(action="set", x=args.x, y=args.y, power_w=args.power,
                                     height_m=args.height)
         except ValueError:
-            raise _Refused("jammer set: --x, --y, --power and --height must be finite, "
-                           "--power and --height >= 0") from None
+            raise UsageError("jammer set: --x, --y, --power and --height must be finite, "
+                             "--power and --height >= 0") from None
     else:
         command = JammerCommand(action=args.jammer_command)
     topics = Topics(args.prefix)
@@ -117,7 +130,7 @@ def cmd_jammer(args: argparse.Namespace) -> int:
         reply = bus.query(session, topics.jammer_control, JammerReply, command)
     print(json.dumps(reply.model_dump(mode="json")))
     if not reply.accepted:
-        raise _Refused(f"jammer {args.jammer_command} refused: {reply.reason}")
+        raise UsageError(f"jammer {args.jammer_command} refused: {reply.reason}")
     return 0
 
 
@@ -185,11 +198,14 @@ def cmd_router(args: argparse.Namespace) -> int:
     for other in args.connect + args.listen:
         endpoint_from(other)
     topics = Topics(args.prefix)
+    if not _ROUTER_ID.match(args.id):
+        raise UsageError(f"--id {args.id!r}: use letters, digits, _ and - (it is a key chunk)")
     guard = None
     if args.credentials is not None:
         if args.connect:
-            raise _Refused("--credentials with --connect: a secure system has a single router "
-                           "(its access rules would treat a linked router as one user)")
+            raise UsageError("--credentials with --connect: a secure system has a single "
+                             "router (its access rules would treat a linked router as one "
+                             "user)")
         guard = access.Guard(access.load(args.credentials), args.prefix)
     stop = threading.Event()
     bus.stop_on_signals(stop)
@@ -217,7 +233,8 @@ def register(commands) -> None:
     clock.add_argument("--lockstep", action="store_true",
                        help="each step waits for every agent (default; deterministic)")
     clock.add_argument("--realtime", action="store_true", help="steps at a fixed rate")
-    up.add_argument("--rate", type=float, default=10.0, help="realtime steps per second")
+    up.add_argument("--rate", type=float, default=None,
+                    help=f"realtime steps per second (default {DEFAULT_RATE:g})")
     up.add_argument("--deadline", type=float, default=2.0,
                     help="lockstep: seconds a step waits for the actions")
     up.add_argument("--map", choices=("online", "perfect", "outdated"), default="online",
@@ -227,7 +244,7 @@ def register(commands) -> None:
     jam.add_argument("--no-jammer", action="store_true")
     up.add_argument("--swap-jammer-at", type=float, default=None, metavar="SEC",
                     help="move the jammer over the control topic SEC seconds into the flight")
-    up.add_argument("--swap-to", default=DEFAULT_SWAP_TO, metavar="X,Y,P|off",
+    up.add_argument("--swap-to", default=None, metavar="X,Y,P|off",
                     help=f"where --swap-jammer-at moves it (default {DEFAULT_SWAP_TO})")
     up.add_argument("--seed", type=int, default=0)
     up.add_argument("--model", default=None, metavar="PATH",

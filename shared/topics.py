@@ -16,15 +16,20 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 ENDPOINT_ENV = "JAMNAV_ENDPOINT"
 DEFAULT_PREFIX = "jamnav"
 _PREFIX = re.compile(r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
+_PROTOCOLS = ("tcp", "udp", "tls", "quic")
+_ENDPOINT = re.compile(rf"^(?:{'|'.join(_PROTOCOLS)})/(?:\[[0-9A-Fa-f:.]+\]|[^/:\[\]]+)"
+                       r":(?P<port>[0-9]{1,5})$")
 _UAV_KEY = re.compile(r"/uav/([^/]+)/")
 
 
 def endpoint_from(given: str | None = None) -> str:
-    """--endpoint if given, else $JAMNAV_ENDPOINT, else the default loopback router."""
+    """--endpoint if given, else $JAMNAV_ENDPOINT, else the default loopback router; a
+    malformed one is refused here (zenoh would only say later that it cannot connect)."""
     endpoint = given or os.environ.get(ENDPOINT_ENV) or DEFAULT_ENDPOINT
-    if "/" not in endpoint:
-        raise ValueError(f"endpoint {endpoint!r}: expected PROTOCOL/ADDRESS, e.g. "
-                         f"{DEFAULT_ENDPOINT}")
+    found = _ENDPOINT.match(endpoint)
+    if not found or not 1 <= int(found.group("port")) <= 65535:
+        raise ValueError(f"endpoint {endpoint!r}: expected PROTOCOL/HOST:PORT with PROTOCOL "
+                         f"one of {', '.join(_PROTOCOLS)}, e.g. {DEFAULT_ENDPOINT}")
     return endpoint
 
 

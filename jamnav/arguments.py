@@ -1,0 +1,59 @@
+"""Checks of command-line arguments shared by every ``jamnav`` command: a bad value is refused
+with one line before any work starts, never found deep inside as a traceback."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+
+class UsageError(Exception):
+    """A problem with the user's input, reported as one line (exit 2)."""
+
+
+# Negative seeds fail deep in numpy; torch refuses seeds past 64 bits, and training adds
+# offsets to its seed, so stay well clear at 32 bits (numpy's legacy seed range).
+SEED_MAX = 2**32 - 1
+
+
+def check_range(
+    option: str, value: float | None, low: float, high: float | None = None,
+    *, above: bool = False,
+) -> None:
+    """Refuse a count, rate or seed out of range before any work starts (deep inside, it
+    would fail as a traceback or run forever). NaN and infinities are never in range;
+    ``above`` excludes ``low`` itself."""
+    if value is None:  # an optional value left to its default
+        return
+    if math.isfinite(value) and (value > low if above else value >= low) and (
+        high is None or value <= high
+    ):
+        return
+    if above:
+        raise UsageError(f"{option} must be a finite number above {low:g}")
+    if high is None:
+        raise UsageError(f"{option} must be at least {low}")
+    raise UsageError(f"{option} must be between {low} and {high}")
+
+
+def output_path(
+    option: str, text: str, *, directory: bool = False, beside: Sequence[str] = ()
+) -> Path:
+    """``text`` as where a command writes (a directory, or a file plus the files named by
+    ``beside`` suffixes), refused now if it cannot be written: the writing comes last, after
+    the work, which a late failure would throw away."""
+    path = Path(text)
+    if not directory:
+        for target in (path, *(path.with_suffix(suffix) for suffix in beside)):
+            if target.is_dir():
+                raise UsageError(f"{option} {text}: {target} is a directory")
+    existing = path if directory else path.parent
+    while not existing.exists() and not existing.is_symlink():  # a dangling link stops too
+        existing = existing.parent
+    if not existing.is_dir():
+        raise UsageError(f"{option} {text}: {existing} is not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise UsageError(f"{option} {text}: {existing} is not writable")
+    return path
