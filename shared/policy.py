@@ -127,6 +127,9 @@ class RasterMap:
         return out
 
 
+CLOSING_TOLERANCE_M = 0.01  # inside the margin, closing by less than this still counts as holding
+
+
 class Decision(NamedTuple):
     speed: np.ndarray  # (N,)
     heading: np.ndarray  # (N,)
@@ -157,6 +160,18 @@ class LookaheadPolicy:
             tensor = torch.from_numpy(states).to(self.device)
             return self.value_net(tensor).cpu().numpy().astype(np.float64)
 
+    def _margins(self, observation: Observation) -> np.ndarray:
+        """The safety margin kept to each other UAV (N, M): the method's margin, or less than
+        the gap there is now to a UAV already closer. A fixed margin would make every move,
+        hovering included, look like a collision once two UAVs are inside it, and both would
+        hover there for ever; this way only moves that close the gap further count as one."""
+        margin = self.options.collision_margin_m
+        if margin == 0:
+            return np.zeros_like(observation.others_radius)
+        now = (np.linalg.norm(observation.others_position - observation.position[:, None],
+                              axis=-1) - observation.radius[:, None] - observation.others_radius)
+        return np.clip(now - CLOSING_TOLERANCE_M, 0.0, margin)
+
     def decide(
         self,
         observation: Observation,
@@ -183,7 +198,8 @@ class LookaheadPolicy:
             observation.others_radius[:, None],
             observation.others_present[:, None],
             self.dt,
-        ) - self.options.collision_margin_m
+            self._margins(observation)[:, None],
+        )
         level = radio_map.level_at(next_position)
         below = np.where(level == 0, observation.below_steps[:, None] + 1, 0)
         check_now = self.rewards.is_check_step(observation.step)[:, None]

@@ -61,8 +61,10 @@ def smallest_gaps(
     other_radius: np.ndarray,
     other_present: np.ndarray,
     duration: float,
+    margin: float | np.ndarray = 0.0,
 ) -> np.ndarray:
-    """Smallest gap over one step between each UAV and the others it can see.
+    """Smallest gap over one step between each UAV and the others it can see, less a safety
+    ``margin`` per other (broadcast against other_radius).
 
     Shapes: own_* (..., 2) / (...); other_* (..., M, 2) / (..., M); returns (...). Absent
     others (padding, finished UAVs) count as infinitely far.
@@ -72,5 +74,5 @@ def smallest_gaps(
         other_velocity - own_velocity[..., None, :],
         duration,
     )
-    gap = distance - own_radius[..., None] - other_radius
+    gap = distance - own_radius[..., None] - other_radius - margin
     return np.where(other_present, gap, np.inf).min(axis=-1, initial=np.inf)

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -105,3 +106,41 @@ def test_a_value_network_of_the_wrong_input_size_is_refused(scenario):
 
     with pytest.raises(WeightsError, match="features"):
         LookaheadPolicy(scenario, ValueNetwork(joint_state_size(scenario) + 1, 2.0))
+
+
+def beside_another(other_offset):
+    """A UAV heading east to a goal 30 m away, and a hovering UAV at ``other_offset``."""
+    return dataclasses.replace(
+        lone_uav(0.0, (42.5, 0.0)),
+        others_position=np.array([[np.add((12.5, 0.0), other_offset)]]),
+        others_velocity=np.zeros((1, 1, 2)), others_radius=np.ones((1, 1)),
+        others_present=np.ones((1, 1), dtype=bool))
+
+
+def gap_after(decision, observation) -> float:
+    moved = observation.position[0] + 1.0 * decision.speed[0] * np.array(
+        [math.cos(decision.heading[0]), math.sin(decision.heading[0])])
+    return float(np.hypot(*(moved - observation.others_position[0, 0])) - 2.0)
+
+
+class NearGoalValue(ValueNetwork):
+    """Rewards being close to the destination, and never worse than a collision."""
+
+    def forward(self, state):
+        return 1.0 - 0.01 * state[..., 4]
+
+
+def test_inside_the_safety_margin_a_uav_moves_on_instead_of_hovering_for_ever(scenario):
+    margin = {"collision_margin_m": 3.5}
+    policy = LookaheadPolicy(scenario, NearGoalValue(joint_state_size(scenario), 2.0, margin))
+    radio_map = TrueMap(RadioModel(scenario), None)
+    # 2.5 m to the side: a gap of 0.5 m, well inside the margin. Every move, hovering
+    # included, passes closer than the margin, yet flying on to the goal opens the gap.
+    side = beside_another((0.0, 2.5))
+    decision = policy.decide(side, radio_map)
+    assert decision.speed[0] == scenario.uav.max_speed_mps and decision.heading[0] == 0.0
+    assert gap_after(decision, side) > 0.5
+    # 4 m straight ahead (gap 2 m): flying on would close the gap, so the UAV does not.
+    ahead = beside_another((4.0, 0.0))
+    decision = policy.decide(ahead, radio_map)
+    assert gap_after(decision, ahead) >= 2.0 - 0.01
