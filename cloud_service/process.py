@@ -30,7 +30,7 @@ import torch
 
 from cloud_service.rollout import RasterMaps
 from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights, RetrainConfig
-from cloud_service.sinr_memory import SinrMemory
+from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
 from shared import access, bus
 from shared.measurements import MeasurementSpec
 from shared.messages import (
@@ -99,7 +99,7 @@ class CloudService:
                          "measurements_refused": 0}  # since this process started
         self._lock = threading.Lock()  # guards the two current messages
         self.value = self._value_weights(value_net)
-        self.memory = SinrMemory(run_dir / "cloud" / "memory.sqlite", MeasurementSpec.of(scenario))
+        self.memory = SinrMemory(run_dir / RUN_DIR_FILE, MeasurementSpec.of(scenario))
         self.mapper: OnlineSinrMapper | None = None
         self._events_seen = 0
         if mode == "online":

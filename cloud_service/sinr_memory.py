@@ -23,6 +23,7 @@ import numpy as np
 from shared.measurements import Measurement, MeasurementBatch, MeasurementSpec
 
 DEFAULT_CAPACITY = 100_000  # the paper's replay capacity for more than two UAVs
+RUN_DIR_FILE = Path("cloud") / "memory.sqlite"  # where the cloud process keeps it in a run dir
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS measurements (

@@ -28,6 +28,7 @@ from typing import Any, TextIO
 
 import zenoh
 
+from cloud_service.sinr_memory import RUN_DIR_FILE
 from shared import access, bus
 from shared.messages import (
     JammerCommand,
@@ -371,6 +372,9 @@ class Supervisor:
     # -- the run -----------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:
         c = self.config
+        # The cloud's memory persists in the run directory: a rerun in the same directory
+        # starts with what earlier runs stored.
+        self.memory_existed = (c.run_dir / RUN_DIR_FILE).exists()
         (c.run_dir / "logs").mkdir(parents=True, exist_ok=True)
         previous = {sig: signal.signal(sig, lambda *_: self.stop.set())
                     for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -470,7 +474,8 @@ class Supervisor:
             "agents": {s.ident: {k: s.details.get(k) for k in (
                 "decisions", "decision_p50_us", "decision_p99_us", "decision_cpu_p99_us")}
                 for s in statuses if s.role == "agent"},
-            "measurements": measurement_counts(statuses),
+            "measurements": {**measurement_counts(statuses),
+                             "memory_of_earlier_runs": self.memory_existed},
         }
 
 
@@ -504,7 +509,9 @@ def summary_table(report: dict[str, Any]) -> str:
     rows.append("  dropped        " + (", ".join(f"{k} {v}" for k, v in dropped.items())
                                        or "none"))
     m = report["measurements"]
-    rows.append(f"  measurements   {m['taken']} taken, {m['in_memory']} in the cloud's memory, "
+    earlier = " (with earlier runs')" if m["memory_of_earlier_runs"] else ""
+    rows.append(f"  measurements   {m['taken']} taken, {m['in_memory']} in the cloud's memory"
+                f"{earlier}, "
                 f"{m['buffered']} still buffered, {m['overflowed']} dropped from full outboxes, "
                 f"{m['upload_failures']} uploads retried")
     for event in report["events"]:

@@ -50,7 +50,7 @@ from shared.policy import (
 )
 from shared.scenario import Scenario, ScenarioError, load_scenario
 from shared.topics import Topics, add_bus_arguments, endpoint_from
-from uav_agent.uploads import DEFAULT_CAPACITY, Outbox, Uploader
+from uav_agent.uploads import DEFAULT_BATCH, DEFAULT_CAPACITY, Outbox, Uploader
 
 ROLE = "agent"
 # A UAV hovering (or crawling) measures the same spot again and again: one measurement per
@@ -114,7 +114,8 @@ class Models:
 
 class AgentService:
     def __init__(self, session, topics: Topics, scenario: Scenario, uav: int,
-                 log: logging.Logger, upload_every: int = 16, upload_after: float = 1.0,
+                 log: logging.Logger, upload_every: int = DEFAULT_BATCH,
+                 upload_after: float = 1.0,
                  outbox: int = DEFAULT_CAPACITY):
         self.session, self.topics, self.scenario, self.uav, self.log = (
             session, topics, scenario, uav, log)
@@ -277,7 +278,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--scenario", default=None)
     parser.add_argument("--uav", type=int, default=None,
                         help="UAV to fly (default: ask the world for a free one)")
-    parser.add_argument("--upload-every", type=int, default=16, metavar="N",
+    parser.add_argument("--upload-every", type=int, default=DEFAULT_BATCH, metavar="N",
                         help="measurements per upload (or fewer, once the oldest is 1 s old)")
     parser.add_argument("--outbox", type=int, default=DEFAULT_CAPACITY, metavar="N",
                         help="measurements kept while the cloud does not acknowledge them "
