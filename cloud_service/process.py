@@ -47,14 +47,13 @@ from shared.messages import (
     SinrWeightsPublished,
     UploadReceipt,
     ValueWeights,
-    decode,
     encode,
 )
 from shared.networks import WeightsError, load_network, sha256
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario
 from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET
-from shared.topics import Topics, add_bus_arguments, endpoint_from, uav_in_key
+from shared.topics import Topics, add_bus_arguments, endpoint_from
 
 ROLE = "cloud"
 # Measurements are stamped with the agent's clock: a stamp further ahead than this is a bad
@@ -160,11 +159,7 @@ class CloudService:
         """Checked here, stored and answered by the worker (the query waits for its receipt)."""
         key = self.topics.measurements("*")
         try:
-            if query.payload is None:
-                raise MessageError("upload without a payload")
-            upload = decode(MeasurementUpload, query.payload.to_bytes())
-            if str(upload.uav) != uav_in_key(query.key_expr):
-                raise MessageError(f"upload of uav {upload.uav} on {query.key_expr}")
+            upload = bus.receive(MeasurementUpload, query.key_expr, query.payload)
             if max(m.time for m in upload.measurements) > time.time() + CLOCK_SKEW_S:
                 raise MessageError("upload with measurements from the future")
         except MessageError as exc:

@@ -51,13 +51,12 @@ def _guarded(handler):
 def _check_value_network(path: str, scenario) -> None:
     """The file must be a value network this scenario's agents can fly with: found out now,
     not by a cloud that refuses to start once everything runs."""
-    from shared.networks import WeightsError, load_network
-    from shared.policy import LookaheadPolicy
+    from cloud_service.evaluation import EvaluationError, load_policy
 
     try:
-        LookaheadPolicy(scenario, load_network(Path(path), {"kind": "value"})[0])
-    except WeightsError as exc:
-        raise UsageError(f"--model {path}: {exc}") from None
+        load_policy(scenario, Path(path))
+    except EvaluationError as exc:
+        raise UsageError(f"--model: {exc}") from None
 
 
 def cmd_up(args: argparse.Namespace) -> int:

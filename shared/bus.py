@@ -114,14 +114,20 @@ def publish_event(session: zenoh.Session, topics: Topics, event: Message) -> Non
                 congestion_control=zenoh.CongestionControl.BLOCK)
 
 
+# A put sent right when the match becomes known can still be lost (1 of 6 tries); a moment
+# later it never was.
+MATCH_SETTLE_S = 0.05
+
+
 def wait_matching(publisher: zenoh.Publisher, timeout: float) -> bool:
-    """Wait until someone subscribes to ``publisher``'s key: a put sent before the
-    subscription has reached us may be lost."""
+    """Wait until someone subscribes to ``publisher``'s key, and a moment more: a put sent
+    before the subscription has reached us may be lost."""
     deadline = time.monotonic() + timeout
     while not publisher.matching_status:
         if time.monotonic() >= deadline:
             return False
         time.sleep(0.002)
+    time.sleep(MATCH_SETTLE_S)
     return True
 
 
@@ -156,20 +162,30 @@ class Dropped:
             return dict(self._counts)
 
 
+def receive(kind: type[M], key, payload: zenoh.ZBytes | None) -> M:
+    """The ``kind`` message that arrived on ``key`` (a put or a query), validated; a message
+    about a UAV must come on that UAV's key (``.../uav/<id>/...``): with access control, the
+    key is what says who sent it. MessageError otherwise."""
+    if payload is None:
+        raise MessageError(f"{kind.__name__}: no payload")
+    message = decode(kind, payload.to_bytes())
+    uav = getattr(message, "uav", None)
+    if uav is not None and uav_in_key(key) not in (None, str(uav)):
+        raise MessageError(f"a message about uav {uav} on {key}")
+    return message
+
+
 def subscribe(session: zenoh.Session, key: str, kind: type[M], on_message: Callable[[M], None],
               dropped: Dropped, on_refused: Callable[[str], None] | None = None
               ) -> zenoh.Subscriber:
     """Subscribe to ``key`` and hand each valid ``kind`` message to ``on_message``, which runs
-    on zenoh's delivery thread and must return at once (store it or queue it). A message about
-    a UAV must come on that UAV's key (``.../uav/<id>/...``): with access control, the key is
-    what says who sent it. Refusals are counted; ``on_refused`` hears those worth telling."""
+    on zenoh's delivery thread and must return at once (store it or queue it). Messages are
+    checked by ``receive``; refusals are counted, and ``on_refused`` hears those worth
+    telling."""
 
     def callback(sample: zenoh.Sample) -> None:
         try:
-            message = decode(kind, sample.payload.to_bytes())
-            uav = getattr(message, "uav", None)
-            if uav is not None and uav_in_key(sample.key_expr) not in (None, str(uav)):
-                raise MessageError(f"a message about uav {uav} on {sample.key_expr}")
+            message = receive(kind, sample.key_expr, sample.payload)
         except MessageError as exc:
             if dropped.add(key, str(exc)) and on_refused is not None:
                 on_refused(str(exc))

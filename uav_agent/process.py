@@ -77,11 +77,12 @@ class Models:
 
     def accept(self, update: ValueWeights | SinrMap) -> None:
         """Swap in ``update`` if it is newer and sound; raise WeightsError otherwise (the
-        caller keeps flying with what it has)."""
+        caller keeps flying with what it has). The digest was checked when the message was
+        decoded; here the tensors' names, shapes and dtypes are."""
         if isinstance(update, ValueWeights):
             if self.value_version is not None and update.version <= self.value_version:
                 return
-            network = from_bytes(update.data, update.sha256, {"kind": "value"})
+            network = from_bytes(update.data, expected={"kind": "value"})
             self.policy = LookaheadPolicy(self.scenario, network)
             self.value_version = update.version
         else:
@@ -97,7 +98,7 @@ class Models:
         level_count = scenario.channel.level_count
         if update.grid is None:
             spec = MeasurementSpec.of(scenario)
-            network = from_bytes(update.data, update.sha256, {
+            network = from_bytes(update.data, expected={
                 "kind": "sinr_map", "input_size": spec.feature_size, "levels": level_count})
 
             return sinr_network_raster(network, scenario)

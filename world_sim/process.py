@@ -337,9 +337,6 @@ class WorldService:
             # known here, or its first observation could be lost.
             if uav < self.config.uavs and not bus.wait_matching(self.observation_pubs[uav], 2.0):
                 self.log.warning("agent %d is live but not subscribed", uav)
-            # A put right after the match is known can still be lost (seen in 1 of 6 tries);
-            # a moment later it never was.
-            time.sleep(0.05)
         observation = Observation.of_fleet(
             w.position, w.velocity, w.heading, w.destination, w.radius, w.max_speed, w.level,
             w.below_steps, w.active, w.steps)
