@@ -34,6 +34,11 @@ class MethodOptions(NamedTuple):
     # The lookahead treats another UAV closer than r_i + r_j + margin as a collision: the
     # others may turn into the predicted path within the step.
     collision_margin_m: float = 0.0
+    # Each UAV keeps its move inside its buffered Voronoi cell (the half-planes that stay a
+    # radius short of the bisector to every observed UAV). Two UAVs that both do so cannot
+    # touch, whatever they choose at the same instant: the guarantee that a constant-velocity
+    # prediction lacks when a hovering UAV starts or another turns.
+    safe_cells: bool = False
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None) -> MethodOptions:
@@ -42,7 +47,8 @@ class MethodOptions(NamedTuple):
 
 PAPER_METHOD = MethodOptions()
 EXTENDED_METHOD = MethodOptions(disconnection_memory=True, route_distance=True,
-                                disconnection_reward=-1.0, collision_margin_m=1.5)
+                                disconnection_reward=-1.0, collision_margin_m=1.5,
+                                safe_cells=True)
 METHODS = {"paper": PAPER_METHOD, "extended": EXTENDED_METHOD}
 
 

@@ -128,6 +128,30 @@ class RasterMap:
 
 
 CLOSING_TOLERANCE_M = 0.01  # inside the margin, closing by less than this still counts as holding
+CELL_CLEARANCE_M = 0.005  # kept from the cell's edge, so two UAVs at their edges do not touch
+
+
+def inside_safe_cells(
+    position: np.ndarray,
+    end: np.ndarray,
+    radius: np.ndarray,
+    others_position: np.ndarray,
+    others_present: np.ndarray,
+) -> np.ndarray:
+    """Which moves (N, A) from ``position`` (N, 2) to ``end`` (N, A, 2) stay in the UAV's
+    buffered Voronoi cell (Zhou et al., 2017): for every present other, no farther toward it
+    than half their distance less the UAV's own ``radius`` (N,). A cell is convex, so a
+    straight move whose end is inside never leaves it; if every UAV stays in its cell, two
+    UAVs are always at least r_i + r_j apart. Staying put is always allowed: a UAV already
+    closer than its cell permits must not be left without a move."""
+    toward = others_position - position[:, None]  # (N, M, 2)
+    distance = np.linalg.norm(toward, axis=-1)
+    unit = toward / np.maximum(distance, 1e-12)[..., None]
+    advance = np.einsum("nak,nmk->nam", end - position[:, None], unit)
+    limit = distance / 2 - radius[:, None] - CELL_CLEARANCE_M
+    leaves = (advance > limit[:, None]) & others_present[:, None]
+    still = np.all(end == position[:, None], axis=-1)
+    return still | ~leaves.any(axis=-1)
 
 
 class Decision(NamedTuple):
@@ -230,12 +254,22 @@ class LookaheadPolicy:
             terminal |= lost
             reward = reward + self.options.disconnection_reward * lost
         score = reward + self.gamma * np.where(terminal, 0.0, next_value)
+        rows = np.arange(n)
+        allowed = np.ones_like(score, dtype=bool)
+        if self.options.safe_cells:
+            # The whole step's path counts, arrival included: the world checks it so.
+            allowed = inside_safe_cells(observation.position, position + velocity * self.dt,
+                                        observation.radius, observation.others_position,
+                                        observation.others_present)
+            score = np.where(allowed, score, -np.inf)
         chosen = score.argmax(axis=1)
-        value = score[np.arange(n), chosen]
+        value = score[rows, chosen]
         if epsilon > 0:
             rng = rng or np.random.default_rng()
             explore = rng.random(n) < epsilon
-            chosen = np.where(explore, rng.integers(0, len(self.actions), n), chosen)
+            tried = rng.integers(0, len(self.actions), n)
+            # A random move that would leave the safe cell hovers instead.
+            tried = np.where(allowed[rows, tried], tried, 0)
+            chosen = np.where(explore, tried, chosen)
             value = np.where(explore, np.nan, value)
-        rows = np.arange(n)
         return Decision(speeds[rows, chosen], headings[rows, chosen], chosen, value)
