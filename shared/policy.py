@@ -204,6 +204,7 @@ class LookaheadPolicy:
         rng: np.random.Generator | None = None,
     ) -> Decision:
         n = len(observation)
+        seen = observation
         observation = observation.nearest_neighbours(self.observed_uavs)
         speeds, headings = self.actions.candidates(observation.heading)  # (N, A)
         velocity = velocity_of(speeds, headings)  # (N, A, 2)
@@ -257,10 +258,10 @@ class LookaheadPolicy:
         rows = np.arange(n)
         allowed = np.ones_like(score, dtype=bool)
         if self.options.safe_cells:
-            # The whole step's path counts, arrival included: the world checks it so.
-            allowed = inside_safe_cells(observation.position, position + velocity * self.dt,
-                                        observation.radius, observation.others_position,
-                                        observation.others_present)
+            # The whole step's path counts, arrival included: the world checks it so. Every
+            # UAV in sight bounds the cell, not only the J_n the value network reads.
+            allowed = inside_safe_cells(seen.position, position + velocity * self.dt,
+                                        seen.radius, seen.others_position, seen.others_present)
             score = np.where(allowed, score, -np.inf)
         chosen = score.argmax(axis=1)
         value = score[rows, chosen]
