@@ -393,7 +393,7 @@ def train(
         with log_path.open("w", newline="") as handle:
             csv.writer(handle).writerow(LOG_FIELDS)
 
-    policy = LookaheadPolicy(scenario, net, config.device)
+    policy = LookaheadPolicy(scenario, net, config.device, shield=False)
     controller = LookaheadController(policy, maps, rng=rng)
     world = VectorWorld(scenario, config.envs, uavs)
     gamma = scenario.policy.gamma

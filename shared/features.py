@@ -34,10 +34,13 @@ class MethodOptions(NamedTuple):
     # The lookahead treats another UAV closer than r_i + r_j + margin as a collision: the
     # others may turn into the predicted path within the step.
     collision_margin_m: float = 0.0
-    # Each UAV keeps its move inside its buffered Voronoi cell (the half-planes that stay a
-    # radius short of the bisector to every observed UAV). Two UAVs that both do so cannot
-    # touch, whatever they choose at the same instant: the guarantee that a constant-velocity
-    # prediction lacks when a hovering UAV starts or another turns.
+    # At run time each UAV keeps its move inside its buffered Voronoi cell (the half-planes
+    # that stay a radius short of the bisector to every UAV in sight). Two UAVs that both do
+    # so cannot touch, whatever they choose at the same instant: the guarantee that a
+    # constant-velocity prediction lacks when a hovering UAV starts or another turns.
+    # Training flies without it (see LookaheadPolicy): trained inside the cells, the network
+    # never met a collision and leaned on the cells, with more timeouts (97.2 % success
+    # against 97.9 % over the seven validation settings).
     safe_cells: bool = False
 
     @classmethod

@@ -162,7 +162,11 @@ class Decision(NamedTuple):
 
 
 class LookaheadPolicy:
-    def __init__(self, scenario: Scenario, value_net: ValueNetwork, device: str = "cpu"):
+    def __init__(
+        self, scenario: Scenario, value_net: ValueNetwork, device: str = "cpu", shield: bool = True
+    ):
+        """``shield=False`` flies without the method's safe cells even if it has them: how
+        training flies, so the value network learns what a collision costs."""
         self.scenario = scenario
         self.actions = ActionSet(scenario)
         self.rewards = RewardModel(scenario)
@@ -171,6 +175,7 @@ class LookaheadPolicy:
         self.observed_uavs = scenario.policy.observed_uavs
         self.tolerance = scenario.uav.arrival_tolerance_m
         self.options = MethodOptions.from_dict(value_net.method)
+        self.safe_cells = self.options.safe_cells and shield
         wanted = joint_state_size(scenario, self.options)
         if value_net.input_size != wanted:
             raise WeightsError(f"value network reads {value_net.input_size} features, this "
@@ -257,7 +262,7 @@ class LookaheadPolicy:
         score = reward + self.gamma * np.where(terminal, 0.0, next_value)
         rows = np.arange(n)
         allowed = np.ones_like(score, dtype=bool)
-        if self.options.safe_cells:
+        if self.safe_cells:
             # The whole step's path counts, arrival included: the world checks it so. Every
             # UAV in sight bounds the cell, not only the J_n the value network reads.
             allowed = inside_safe_cells(seen.position, position + velocity * self.dt,
