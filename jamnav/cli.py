@@ -368,21 +368,26 @@ def _check_checkpoint(out: Path, scenario: Scenario, method: str) -> None:
                          "(leave out --resume to start afresh)")
     progress = checkpoint.dir / "progress.json"
     try:
-        saved = json.loads(progress.read_text(encoding="utf-8")).get("config", {})
+        state = json.loads(progress.read_text(encoding="utf-8"))
+        saved = state.get("config", {})
         saved_method = saved.get("method") if isinstance(saved, dict) else None
     except (OSError, ValueError, AttributeError):  # ValueError: not JSON, or not UTF-8
         raise UsageError(f"--resume: {progress} is unreadable") from None
     if saved_method is not None and saved_method != method:
         raise UsageError(f"--resume: the checkpoint in {checkpoint.dir} is of --method "
                          f"{saved_method}, not {method}")
-    weights = checkpoint.dir / "value.safetensors"
+    if not isinstance(state.get("checkpoint_scores"), list):
+        raise UsageError(f"--resume: {progress} has no checkpoint scores (written by an "
+                         "older jamnav); start afresh without --resume")
     expected = {"kind": "value", "input_size": joint_state_size(scenario, METHODS[method])}
-    try:
-        from_bytes(weights.read_bytes(), expected=expected)
-    except OSError as exc:
-        raise UsageError(f"--resume: {weights}: {exc.strerror}") from None
-    except WeightsError as exc:
-        raise UsageError(f"--resume: {weights}: {exc}") from None
+    for name in ("value", "best"):
+        weights = checkpoint.dir / f"{name}.safetensors"
+        try:
+            from_bytes(weights.read_bytes(), expected=expected)
+        except OSError as exc:
+            raise UsageError(f"--resume: {weights}: {exc.strerror}") from None
+        except WeightsError as exc:
+            raise UsageError(f"--resume: {weights}: {exc}") from None
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -401,12 +406,17 @@ def cmd_train(args: argparse.Namespace) -> int:
     config = TrainConfig(episodes=args.episodes, envs=args.envs, uavs=args.uavs,
                          seed=args.seed, device=args.device, method=args.method)
     bar = ProgressBar("train", args.episodes)
+    validated = ""
 
     def progress(info: dict) -> None:
+        nonlocal validated
         phase = info["phase"]
         if phase == "td":
             bar.update(info["episodes_done"], f"eps {info['epsilon']:.2f} "
-                       f"success(last 200) {info['recent_success']:.0%}")
+                       f"success(last 200) {info['recent_success']:.0%}{validated}")
+        elif phase == "validation":
+            validated = (f" validation {info['success_rate']:.1%} (best "
+                         f"{info['best_success_rate']:.1%} at {info['best_episode']})")
         else:
             print(f"train: {phase} {info.get('episodes', '')}".rstrip(), file=sys.stderr)
 
@@ -418,6 +428,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         "episodes": card["episodes"],
         "wall_seconds": card["wall_seconds"],
         "decisions_per_second": card["decisions_per_second"],
+        "selected_episode": card["selection"]["selected_episode"],
         "validation": {k: validation[k] for k in ("success_rate", "disconnection_rate",
                                                    "collision_rate", "timeout_rate")},
     }, indent=2))

@@ -35,8 +35,8 @@ def _free_port() -> int:
 
 # {tmp}: the test's directory; {file}: a regular file; {dir}, {tmp}/dir.png and
 # {tmp}/dir.safetensors: directories; {binary}: a file that is not UTF-8; {bools}: points
-# given as JSON booleans; {extended_run}, {broken_run}: checkpoints train --resume cannot use;
-# {port}: a free loopback port (no router behind it).
+# given as JSON booleans; {extended_run}, {broken_run}, {older_run}: checkpoints train --resume
+# cannot use; {port}: a free loopback port (no router behind it).
 CASES = [
     # scenario show
     (["scenario", "show", "--scenario", "nope"], 2),
@@ -112,6 +112,7 @@ CASES = [
     (["train", "--resume", "--out", "{tmp}/r"], 2),
     (["train", "--resume", "--out", "{extended_run}"], 2),
     (["train", "--resume", "--out", "{broken_run}"], 2),
+    (["train", "--resume", "--out", "{older_run}"], 2),
     (["train", "--scenario", "nope"], 2),
     # fit-sinr
     (["fit-sinr", "--out", "{tmp}/m.pt"], 2),
@@ -193,13 +194,18 @@ def places(tmp_path, monkeypatch):
     (extended / "progress.json").write_text(json.dumps({"config": {"method": "extended"}}))
     broken = tmp_path / "broken_run" / "checkpoint"
     broken.mkdir(parents=True)
-    (broken / "progress.json").write_text(json.dumps({"config": {"method": "paper"}}))
+    (broken / "progress.json").write_text(json.dumps({"config": {"method": "paper"},
+                                                      "checkpoint_scores": []}))
     (broken / "value.safetensors").write_bytes(b"truncated")
+    older = tmp_path / "older_run" / "checkpoint"  # from before checkpoints were scored
+    older.mkdir(parents=True)
+    (older / "progress.json").write_text(json.dumps({"config": {"method": "paper"}}))
     return {
         "tmp": str(tmp_path), "file": str(tmp_path / "file"), "dir": str(tmp_path / "dir"),
         "binary": str(tmp_path / "binary"), "bools": str(tmp_path / "bools.json"),
         "extended_run": str(tmp_path / "extended_run"),
-        "broken_run": str(tmp_path / "broken_run"), "port": str(_free_port()),
+        "broken_run": str(tmp_path / "broken_run"), "older_run": str(tmp_path / "older_run"),
+        "port": str(_free_port()),
     }
 
 

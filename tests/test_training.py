@@ -7,15 +7,18 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
+from cloud_service import value_training
 from cloud_service.value_training import (
     ReplayMemory,
     TrainConfig,
     discounted_returns,
     td_targets,
     train,
+    validate,
 )
-from shared.networks import ValueNetwork, load_network
+from shared.networks import ValueNetwork, from_bytes, load_network, to_bytes
 
 CARD_KEYS = {"command", "seed", "episodes", "wall_seconds", "decisions_per_second", "git_commit",
              "validation"}
@@ -41,6 +44,36 @@ def test_outputs_card_and_resume(scenario, tmp_path):
     with (tmp_path / "train_log.csv").open() as handle:
         episodes = [int(row["episode"]) for row in csv.DictReader(handle)]
     assert episodes == list(range(1, 41))
+
+
+def test_the_best_checkpoint_is_shipped(scenario, tmp_path, monkeypatch):
+    # Scripted validation scores: the second checkpoint is best, the third ties with the first.
+    scripted = iter([0.5, 0.9, 0.5])
+    seen: dict[int, bytes] = {}
+
+    def scripted_validate(_scenario, net, *_args):
+        seen[len(seen)] = to_bytes(net)
+        return {"success_rate": next(scripted)}
+
+    monkeypatch.setattr(value_training, "validate", scripted_validate)
+    card = train(scenario, tiny(60), tmp_path)
+    assert card["selection"]["selected_episode"] == 40
+    assert [c["success_rate"] for c in card["selection"]["checkpoints"]] == [0.5, 0.9, 0.5]
+    shipped = from_bytes((tmp_path / "value_net.safetensors").read_bytes()).state_dict()
+    selected, last = (from_bytes(seen[k]).state_dict() for k in (1, 2))
+    assert shipped.keys() == selected.keys()
+    assert all(torch.equal(shipped[name], selected[name]) for name in shipped)
+    assert not all(torch.equal(shipped[name], last[name]) for name in shipped)
+
+
+def test_resume_keeps_the_earlier_checkpoint_scores(scenario, tmp_path):
+    first = train(scenario, tiny(20), tmp_path)
+    resumed = train(scenario, tiny(40), tmp_path, resume=True)
+    assert [c["episode"] for c in resumed["selection"]["checkpoints"]] == [20, 40]
+    assert resumed["selection"]["checkpoints"][0] == first["selection"]["checkpoints"][0]
+    # The shipped weights score what the card says, on the same validation episodes.
+    network, _ = load_network(tmp_path / "value_net.safetensors")
+    assert validate(scenario, network, 2, 4, "cpu") == resumed["validation"]
 
 
 def card_sha(out):
