@@ -462,12 +462,13 @@ def train(
             log_handle.flush()
             scores.append({"episode": done, **validate(scenario, net, config.validation_episodes,
                                                        uavs, config.device)})
-            if scores[-1] is best_score(scores):
+            leader = best_score(scores)
+            if leader is scores[-1]:
                 best.load_state_dict(net.state_dict())
             report({"phase": "validation", "episodes_done": done,
                     "success_rate": scores[-1]["success_rate"],
-                    "best_episode": best_score(scores)["episode"],
-                    "best_success_rate": best_score(scores)["success_rate"]})
+                    "best_episode": leader["episode"],
+                    "best_success_rate": leader["success_rate"]})
             checkpoint.save(net, target, best, optimizer, memory, {
                 "episodes_done": done, "next_episode": next_episode,
                 "wall_seconds": wall_before + time.perf_counter() - session_start,

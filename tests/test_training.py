@@ -49,10 +49,10 @@ def test_outputs_card_and_resume(scenario, tmp_path):
 def test_the_best_checkpoint_is_shipped(scenario, tmp_path, monkeypatch):
     # Scripted validation scores: the second checkpoint is best, the third ties with the first.
     scripted = iter([0.5, 0.9, 0.5])
-    seen: dict[int, bytes] = {}
+    seen: list[bytes] = []
 
     def scripted_validate(_scenario, net, *_args):
-        seen[len(seen)] = to_bytes(net)
+        seen.append(to_bytes(net))
         return {"success_rate": next(scripted)}
 
     monkeypatch.setattr(value_training, "validate", scripted_validate)
