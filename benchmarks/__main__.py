@@ -10,7 +10,8 @@ import platform
 import sys
 import time
 
-BENCHMARKS = ["bench_radio", "bench_world", "bench_policy", "bench_sinr", "bench_bus"]
+BENCHMARKS = ["bench_radio", "bench_world", "bench_policy", "bench_sinr", "bench_adaptation",
+              "bench_bus"]
 
 
 def main() -> int:
@@ -31,7 +32,9 @@ def main() -> int:
         module = importlib.import_module(f"benchmarks.{name}")
         for figure in module.run():
             rows.append(figure)
-            print(f"{figure.name:<62} {figure.value:>14,.0f} {figure.unit:<10} {figure.verdict}")
+            digits = 0 if abs(figure.value) >= 100 else 1
+            print(f"{figure.name:<62} {figure.value:>14,.{digits}f} {figure.unit:<10} "
+                  f"{figure.verdict}")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as out:
             json.dump(

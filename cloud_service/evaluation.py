@@ -3,15 +3,16 @@
 ``perfect`` and ``outdated`` fly the lookahead on the true current map or the map without a
 jammer. ``proposed`` flies it on the online SINR map: the shipped no-jammer network, updated
 by the cloud's own code (memory, change detector, retraining) from the measurements the UAVs
-take during the run. Its episodes fly one after another in a single world, as the real system
-does, and simulated time advances one step per world step, so the map adapts at the pace it
-would in flight. The episodes that start before the first new map is published are the
-transient and are reported apart; the headline figures are the episodes after it.
+take during the run (the same reports, de-duplicated by the same rule, as the agents upload).
+Its episodes fly one after another in a single world, as the real system does, and simulated
+time advances one step per world step, so the map adapts at the pace it would in flight. The
+headline figures count every episode; the transient (episodes flown on a map older than the
+jammer) is also reported apart. ``swap_every`` moves the jammer to a fresh random setting
+every so many episodes, the resilience evaluation.
 """
 
 from __future__ import annotations
 
-import math
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -20,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from cloud_service.rollout import (
+    JammerSchedule,
     LookaheadController,
     OrcaController,
     StraightController,
@@ -30,16 +32,22 @@ from cloud_service.rollout import (
 )
 from cloud_service.sinr_mapping import OnlineSinrMapper, RetrainConfig
 from cloud_service.sinr_memory import SinrMemory
-from shared.measurements import MeasurementBatch, MeasurementSpec, scenario_features
+from shared.measurements import (
+    MeasurementBatch,
+    MeasurementSpec,
+    SpotFilter,
+    scenario_features,
+)
 from shared.networks import SinrMapNetwork, WeightsError, load_network
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting
 from shared.policy import LookaheadPolicy, RasterMap, sinr_network_raster
 from shared.scenario import Scenario
-from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET
+from shared.shipped import VALUE_NET, sinr_map_for
 from world_sim.core import VectorWorld
 
 METHODS = ("proposed", "perfect", "outdated", "orca", "straight")
+_SWAP_STREAM = 0x5A4150  # a stream of its own for the swapped jammers of a run
 
 
 class EvaluationError(ValueError):
@@ -74,11 +82,13 @@ class OnlineMaps:
         # No wall-clock budget: a simulated run must not depend on the machine's speed.
         self.mapper = OnlineSinrMapper(
             scenario, self.memory, network, float(card.get("accuracy", 0.99)),
+            severe_rate=card.get("severe_rate"),
             retrain=RetrainConfig(max_seconds=None), clock=lambda: self.now, background=False,
         )
         self._raster_version = -1
         self._raster = None
         self.uploads = 0
+        self.spots: SpotFilter | None = None
 
     def __call__(self, world: VectorWorld, rows: np.ndarray) -> RasterMap:
         if self._raster_version != self.mapper.version:
@@ -87,27 +97,72 @@ class OnlineMaps:
         return RasterMap(self.scenario, [self._raster], np.zeros(rows.size, dtype=np.int64))
 
     def upload(self, world: VectorWorld) -> None:
-        """Every UAV that flew this step uploads what it measured along the way."""
+        """Every UAV that flew this step uploads what its receiver reported along the way,
+        de-duplicated as an agent de-duplicates (``SpotFilter``)."""
         self.now += world.dt
-        env, uav = np.nonzero(world.measured)
+        # A UAV whose mission ended in this step uploads nothing more, as its agent hears
+        # nothing more from the world.
+        env, uav = np.nonzero(world.measured & world.active)
         if env.size == 0:
             return
-        xy = world.measured_xy[env, uav].reshape(-1, 2)
-        levels = world.measured_level[env, uav].reshape(-1)
-        samples = world.measured_xy.shape[2]
-        step = int(world.steps[env[0]])
-        ids = [f"{self.uploads}-{k}" for k in range(levels.size)]
+        if self.spots is None:
+            self.spots = SpotFilter(self.scenario, world.num_envs * world.num_uavs)
+        xy, levels = world.measured_xy[env, uav], world.measured_level[env, uav]
+        kept = self.spots.keep(env * world.num_uavs + uav, xy, levels)
+        samples = levels.shape[1]
+        taken_at = self.now - world.dt * (1 - np.arange(1, samples + 1) / samples)
+        rows, sample = np.nonzero(kept)
+        ids = [f"{self.uploads}-{k}" for k in range(rows.size)]
         self.uploads += 1
         batch = MeasurementBatch.of_arrays(
-            ids, np.repeat([f"uav-{u}" for u in uav], samples).tolist(), step,
-            self.now - world.dt * (1 - np.tile(np.arange(1, samples + 1) / samples, env.size)),
-            scenario_features(self.scenario, xy), levels,
+            ids, [f"uav-{u}" for u in uav[rows]], int(world.steps[env[0]]), taken_at[sample],
+            scenario_features(self.scenario, xy[rows, sample]), levels[rows, sample],
         )
         self.mapper.ingest(batch)
 
     def close(self) -> None:
         self.mapper.close()
         self.memory.close()
+
+
+def swapping_jammers(scenario: Scenario, first: JammerSetting | None, swap_every: int | None,
+                     seed: int) -> JammerSchedule:
+    """Episode -> jammer: ``first`` for the first ``swap_every`` episodes, then a fresh random
+    setting every ``swap_every`` (position uniform over the area, power uniform over the
+    scenario's training range), drawn from ``seed`` alone; ``first`` throughout without swaps."""
+    area, powers = scenario.area, scenario.training.jammer_power_range_w
+
+    def at(episode: int) -> JammerSetting | None:
+        period = 0 if swap_every is None else episode // swap_every
+        if period == 0:
+            return first
+        rng = np.random.default_rng([seed, _SWAP_STREAM, period])
+        x, y = rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max))
+        return JammerSetting(round(float(x), 1), round(float(y), 1),
+                             round(float(rng.uniform(*powers)), 2))
+
+    return at
+
+
+def transient_episodes(schedule: JammerSchedule, start_version: np.ndarray) -> np.ndarray:
+    """Which episodes flew on a map older than the jammer: from each change (the first
+    episode under a new setting, or the first episode if it has a jammer, the map starting
+    without one) until the first episode that started with a map published since."""
+    episodes = len(start_version)
+    transient = np.zeros(episodes, dtype=bool)
+    previous, changed_at = None, None
+    for episode in range(episodes):
+        setting = schedule(episode)
+        if setting != previous:
+            changed_at = episode
+            previous = setting
+            if episode == 0 and setting is None:
+                changed_at = None
+        if changed_at is not None and start_version[episode] == start_version[changed_at]:
+            transient[episode] = True
+        else:
+            changed_at = None
+    return transient
 
 
 def evaluate(
@@ -118,18 +173,27 @@ def evaluate(
     jammer: JammerSetting | None,
     uavs: int | None = None,
     value_net: Path = VALUE_NET,
-    sinr_map: Path = SINR_MAP_NO_JAMMER,
+    sinr_map: Path | None = None,
     on_episode: Callable[[int], None] | None = None,
+    swap_every: int | None = None,
+    memory_dir: Path | None = None,
 ) -> dict[str, Any]:
-    """Fly ``episodes`` seeded episodes with ``method``; the report of ``jamnav eval``."""
+    """Fly ``episodes`` seeded episodes with ``method``; the report of ``jamnav eval``. The
+    headline rates count every episode; for ``proposed`` the transient (episodes flown on a
+    map older than the jammer) is also reported apart, as is the rest. ``sinr_map``: the
+    survey map ``proposed`` starts from (default: the shipped one of the scenario's world).
+    ``memory_dir`` keeps
+    the cloud's measurement memory of a ``proposed`` run (a scratch directory otherwise)."""
     if method not in METHODS:
         raise EvaluationError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    schedule = swapping_jammers(scenario, jammer, swap_every, seed)
     online = None
     with tempfile.TemporaryDirectory(prefix="jamnav-eval-") as scratch:
         if method in ("proposed", "perfect", "outdated"):
             policy = load_policy(scenario, value_net)
             if method == "proposed":
-                online = OnlineMaps(scenario, sinr_map, Path(scratch))
+                online = OnlineMaps(scenario, sinr_map or sinr_map_for(scenario.name),
+                                    memory_dir or Path(scratch))
                 maps = online
             else:
                 maps = perfect_maps(scenario) if method == "perfect" else outdated_maps(scenario)
@@ -149,7 +213,7 @@ def evaluate(
 
         try:
             results = run_episodes(
-                scenario, controller, episodes, seed, jammer, uavs,
+                scenario, controller, episodes, seed, schedule, uavs,
                 num_envs=1 if online else 64,
                 on_step=online.upload if online else None,
                 on_episode=episode_done,
@@ -164,24 +228,22 @@ def evaluate(
         "uavs": int(results.outcomes.shape[1]),
         "seed": seed,
         "jammer": None if jammer is None else jammer._asdict(),
+        "swap_every": swap_every,
         "scenario": scenario.name,
+        **outcome_rates(results.outcomes),
     }
-    if online is None:
-        report.update(outcome_rates(results.outcomes))
-    else:
-        adapted = start_version > 0
-        changed = any(event["type"] == "change_detected" for event in online.mapper.events)
-        transient = (int(np.argmax(adapted)) if adapted.any() else episodes) if changed else 0
-        steady = results.outcomes[transient:]
-        report.update(outcome_rates(steady) if steady.size else
-                      {key: math.nan for key in outcome_rates(results.outcomes)})
-        report["transient"] = {
-            "episodes": transient,
-            "rule": "episodes that started before the first new SINR map was published",
-            **(outcome_rates(results.outcomes[:transient]) if transient else {}),
-        }
+    if online is not None:
+        transient = transient_episodes(schedule, start_version)
+        for part, rows in (("transient", transient), ("steady", ~transient)):
+            report[part] = {"episodes": int(rows.sum()),
+                            **(outcome_rates(results.outcomes[rows]) if rows.any() else {})}
+        report["transient"]["rule"] = ("episodes flown on a map older than the jammer: from a "
+                                       "change until a map published since")
         report["events"] = online.mapper.events
-        report["steady_episodes"] = int(episodes - transient)
+    if swap_every is not None:
+        report["jammers"] = [
+            {"from_episode": k, "jammer": None if (s := schedule(k)) is None else s._asdict()}
+            for k in range(0, episodes, swap_every)]
     report["outcomes"] = [[Outcome(code).label for code in row] for row in results.outcomes]
     return report
 
@@ -211,7 +273,7 @@ def table_one(
                 report = evaluate(scenario, method, episodes, seed, setting, value_net=path)
                 row = {"jammer": setting.label, "method": method, "value_net": name,
                        **{key: report[key] for key in RATE_KEYS},
-                       "episodes": report.get("steady_episodes", episodes),
+                       "episodes": episodes,
                        "transient_episodes": report.get("transient", {}).get("episodes", 0),
                        **{f"paper_{key}": value / 100 for key, value in paper.items()}}
                 rows.append(row)
@@ -236,8 +298,9 @@ def write_table(rows: list[dict[str, Any]], out_dir: Path, command: str) -> tupl
         "",
         f"Produced by `{command}`. Success / disconnection / collision / timeout in % of",
         "UAV-episodes; the paper's figures (success / disconnection / collision) and the",
-        "difference in success. `proposed` counts the episodes after the transient (those that",
-        "started before the first new SINR map was published); the transient length is given.",
+        "difference in success. Every episode counts, the transient of `proposed` included (the",
+        "episodes flown on the map without a jammer until the first corrected map); its length",
+        "is given.",
         "",
         "| jammer | method | value network | ours: S / D / C / T | paper: S / D / C | "
         "delta S | transient |",

@@ -1,7 +1,7 @@
 """Simulated uploads for the online SINR map, and the paper's Fig. 2b from them.
 
 A fleet of UAVs crosses the area on straight legs between waypoints drawn uniformly over it,
-at the scenario's top speed, each measuring and uploading once per time step. This is not a
+at the scenario's top speed, reporting along its path as an agent does. This is not a
 mission simulation: it spreads measurements over the map the way through-traffic does, which
 is what the cloud's detector and retraining see. The jammer follows a schedule; everything
 runs in simulated time through ``OnlineSinrMapper`` in synchronous mode, so a seed gives one
@@ -18,20 +18,22 @@ from typing import Any
 import numpy as np
 
 from cloud_service.sinr_mapping import (
+    RECENT_KEPT,
     ChangeDetector,
     OnlineSinrMapper,
     RetrainConfig,
-    measurements_at,
+    labelled_batch,
 )
 from cloud_service.sinr_memory import SinrMemory
 from shared.measurements import (
     MeasurementBatch,
     MeasurementSpec,
+    SpotFilter,
     predict_levels,
     scenario_features,
 )
 from shared.networks import SinrMapNetwork
-from shared.paper import TABLE_I_JAMMERS, JammerSetting
+from shared.paper import TABLE_I_JAMMERS, JammerSetting, jammer_params
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 
@@ -39,15 +41,19 @@ DEFAULT_UAVS = 100  # uploads per step: a window of 200 is two steps of the whol
 
 
 class Fleet:
-    """UAVs on straight legs between uniform waypoints, each measuring once per time step."""
+    """UAVs on straight legs between uniform waypoints, reporting along their path as the
+    agents do: ``uav.measurements_per_step`` reports a step with the receiver's noise,
+    de-duplicated by the agents' rule (``SpotFilter``)."""
 
     def __init__(self, scenario: Scenario, uavs: int, rng: np.random.Generator):
         self.scenario = scenario
         self.radio = RadioModel(scenario)
         self.rng = rng
         self.step_length = scenario.uav.max_speed_mps * scenario.timing.step_s
-        self.sources = [f"uav-{i}" for i in range(uavs)]
+        self.sources = np.array([f"uav-{i}" for i in range(uavs)])
+        self.spots = SpotFilter(scenario, uavs)
         self.position = self._draw(uavs)
+        self.previous = self.position.copy()
         self.waypoint = self._draw(uavs)
 
     def _draw(self, n: int) -> np.ndarray:
@@ -60,20 +66,23 @@ class Fleet:
         distance = np.hypot(offset[:, 0], offset[:, 1])
         arrived = distance <= self.step_length
         heading = offset / np.maximum(distance, 1e-9)[:, None]
+        self.previous = self.position
         self.position = np.where(arrived[:, None], self.waypoint,
                                  self.position + heading * self.step_length)
         self.waypoint[arrived] = self._draw(int(arrived.sum()))
 
     def uploads(self, jammer: JammerParams | None, time: float, step: int) -> MeasurementBatch:
-        """Every UAV's measurement at its current position."""
-        return measurements_at(self.scenario, self.radio, jammer, self.position, self.rng,
-                               time=time, step=step, source=self.sources)
-
-
-def jammer_params(scenario: Scenario, setting: JammerSetting | None) -> JammerParams | None:
-    if setting is None:
-        return None
-    return JammerParams(setting.x, setting.y, setting.power_w, scenario.jammer.height_m)
+        """What the UAVs report along their last step and keep, stamped along the step."""
+        samples = self.scenario.uav.measurements_per_step
+        share = np.arange(1, samples + 1) / samples
+        xy = self.previous[:, None] + share[None, :, None] * (self.position - self.previous)[
+            :, None]
+        levels = self.radio.measured_levels(self.radio.evaluate(xy, jammer).sinr_db, self.rng)
+        rows, sample = np.nonzero(self.spots.keep(np.arange(len(xy)), xy, levels))
+        taken_at = time - self.scenario.timing.step_s * (1 - share)
+        return labelled_batch(self.scenario, xy[rows, sample], levels[rows, sample], self.rng,
+                              time=taken_at[sample], step=step,
+                              source=self.sources[rows].tolist())
 
 
 @dataclass(frozen=True)
@@ -132,15 +141,14 @@ def simulate_online_map(
     truth = {setting: radio.evaluate(test_xy, jammer_params(scenario, setting)).level
              for setting in set(schedule.settings)}
     fleet = Fleet(scenario, uavs, rng)
-    times, accuracies, versions, windows = [], [], [], []
+    times, accuracies, versions, monitor = [], [], [], []
     predicted, predicted_version = None, None
     for step in range(int(round(duration / dt))):
         now[0] = step * dt
         setting = schedule.at(now[0])
         fleet.fly()
-        report = mapper.ingest(fleet.uploads(jammer_params(scenario, setting), now[0], step))
-        windows += [{"t": check.end, "accuracy": check.accuracy, "cusum": check.cusum}
-                    for check in report.windows]
+        mapper.ingest(fleet.uploads(jammer_params(scenario, setting), now[0], step))
+        monitor.append(mapper.state()["recent_accuracy"])
         if predicted_version != mapper.version:
             predicted = predict_levels(mapper.current_network(), test_features)
             predicted_version = mapper.version
@@ -157,12 +165,12 @@ def simulate_online_map(
         "jammer_changes": [{"t": start, "jammer": schedule.label(setting)}
                            for start, setting in zip(schedule.starts, schedule.settings,
                                                      strict=True)],
-        "detector": {"window": mapper.detector.window, "allowance": mapper.detector.allowance,
+        "detector": {"alarm_rate": mapper.detector.alarm_rate,
                      "threshold": mapper.detector.threshold},
         "t": times,
         "accuracy": accuracies,
         "version": versions,
-        "windows": windows,
+        "monitor": monitor,
         "events": mapper.events,
     }
 
@@ -179,9 +187,9 @@ def save_online_map_figure(timeline: dict[str, Any], out: Path) -> None:
     fig, ax = plt.subplots(figsize=(9, 4.2))
     ax.plot(timeline["t"], np.array(timeline["accuracy"]) * 100, color="tab:blue", lw=1.4,
             label="online map, fresh positions")
-    windows = timeline["windows"]
-    ax.plot([w["t"] for w in windows], [w["accuracy"] * 100 for w in windows], ".",
-            color="tab:gray", ms=2.5, alpha=0.6, label="monitor, window of uploads")
+    monitor = [np.nan if a is None else 100 * a for a in timeline["monitor"]]
+    ax.plot(timeline["t"], monitor, color="tab:gray", lw=0.8, alpha=0.7,
+            label=f"monitor, last {RECENT_KEPT} uploads")
     for change in timeline["jammer_changes"][1:]:
         ax.axvline(change["t"], color="tab:red", ls="--", lw=0.9)
         ax.annotate(change["jammer"], (change["t"], 0.02), xycoords=("data", "axes fraction"),

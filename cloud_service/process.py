@@ -36,6 +36,8 @@ from shared.measurements import MeasurementSpec
 from shared.messages import (
     ChangeDetected,
     JammerChanged,
+    JammerEstimate,
+    JammerEstimated,
     JammerInfo,
     MapMode,
     MeasurementUpload,
@@ -47,12 +49,13 @@ from shared.messages import (
     SinrWeightsPublished,
     UploadReceipt,
     ValueWeights,
+    describe_estimate,
     encode,
 )
 from shared.networks import WeightsError, load_network, sha256
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario
-from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET
+from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET, sinr_map_for
 from shared.topics import Topics, add_bus_arguments, endpoint_from
 
 ROLE = "cloud"
@@ -108,6 +111,7 @@ class CloudService:
             self.sinr = raster_map(scenario, self.raster_maps, mode, 1, jammer)
         self.value_pub = bus.reliable_publisher(session, topics.value_weights)
         self.sinr_pub = bus.reliable_publisher(session, topics.sinr_map)
+        self.estimate_pub = bus.reliable_publisher(session, topics.jammer_estimate)
         # Agents that outlived a restart of the cloud (and missed what it published while it
         # was down) catch up; agents that start later ask the queryables.
         self.value_pub.put(encode(self.value))
@@ -139,9 +143,12 @@ class CloudService:
         if not isinstance(accuracy, int | float):
             raise WeightsError(f"{path}: its card states no accuracy")
         version = int(card.get("version", 0))
+        # The survey map stays the base every estimate corrects, whichever map is in service.
+        base, _ = load_network(sinr_net, {"kind": "sinr_map", "input_size": spec.feature_size,
+                                          "levels": spec.level_count})
         self.mapper = OnlineSinrMapper(self.scenario, self.memory, network, float(accuracy),
-                                       publish=self._on_retrained, retrain=retrain,
-                                       version=version)
+                                       severe_rate=card.get("severe_rate"), base_network=base, publish=self._on_retrained,
+                                       retrain=retrain, version=version)
         data = path.read_bytes()
         return SinrMap(version=version, mode="online", sha256=sha256(data), data=data,
                        accuracy=float(accuracy))
@@ -173,6 +180,8 @@ class CloudService:
             current = self.sinr
         details = {"map": self.mode, "stored": self.memory.count(),
                    "map_accuracy": current.accuracy, **self.receipts}
+        if self.mapper is not None:
+            details.update(mapper_details(self.mapper.state()))
         return ProcessStatus(role=ROLE, ident="0", pid=os.getpid(), t=time.time(),
                              value_version=self.value.version, sinr_version=current.version,
                              dropped=self.dropped.as_dict(), details=details)
@@ -227,6 +236,9 @@ class CloudService:
                     accuracy=event["accuracy"], change_time=event.get("change_time")))
                 self.log.info("jammer change detected (map v%d at %.1f%% on the last window)",
                               event["version"], 100 * event["accuracy"])
+            elif event["type"] == "estimate_not_converged":
+                self.log.info("jammer estimate not converged on %d measurements; trying again "
+                              "as more arrive", event["measurements"])
             elif event["type"] == "retrain_failed":
                 self._publish_event(RetrainFailed(t=event["t"], source=ROLE,
                                                   version=event["version"],
@@ -254,6 +266,12 @@ class CloudService:
         with self._lock:
             self.sinr = update
         self.sinr_pub.put(encode(update))
+        if weights.estimate is not None:
+            estimate = estimate_message(weights.estimate, weights.version, time.time())
+            self.estimate_pub.put(encode(estimate))
+            self._publish_event(JammerEstimated(t=estimate.t, source=ROLE, estimate=estimate))
+            self.log.info("jammer estimate with map v%d: %s", weights.version,
+                          describe_estimate(estimate))
         self._publish_event(SinrWeightsPublished(
             t=time.time(), source=ROLE, version=weights.version, accuracy=update.accuracy,
             sha256=weights.sha256, path=str(path.resolve())))
@@ -265,6 +283,24 @@ class CloudService:
 
 
 # -- process shell ------------------------------------------------------------------------------
+def estimate_message(estimate, map_version: int, t: float) -> JammerEstimate:
+    """The wire form of a ``jammer_estimation.JammerEstimate``."""
+    fields = estimate._asdict()
+    if not estimate.present:
+        fields = {"present": False, "measurements": estimate.measurements}
+    return JammerEstimate(map_version=map_version, t=t, **{
+        key: value for key, value in fields.items() if key in JammerEstimate.model_fields})
+
+
+def mapper_details(state: dict) -> dict:
+    """The mapper's state as status scalars."""
+    estimate = state["estimate"]
+    return {"map_phase": state["phase"], "recent_accuracy": state["recent_accuracy"],
+            "since_change": state["since_change"],
+            "estimate": None if estimate is None else describe_estimate(
+                estimate_message(estimate, state["map_version"], 0.0))}
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m cloud_service.process", description=__doc__)
     add_bus_arguments(parser)
@@ -273,8 +309,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--run-dir", default="runs/cloud", metavar="DIR",
                         help="replay memory and published SINR maps")
     parser.add_argument("--value-net", default=str(VALUE_NET), metavar="PATH")
-    parser.add_argument("--sinr-net", default=str(SINR_MAP_NO_JAMMER), metavar="PATH",
-                        help="initial SINR map (online)")
+    parser.add_argument("--sinr-net", default=None, metavar="PATH",
+                        help="the survey's no-jammer SINR map (online; default: the shipped "
+                             "one of the scenario)")
     parser.add_argument("--retrain-samples", type=int, default=None, metavar="N",
                         help="post-change measurements a retraining waits for")
     jam = parser.add_mutually_exclusive_group()
@@ -314,7 +351,8 @@ def main(argv: list[str] | None = None) -> int:
     with session:
         try:
             cloud = CloudService(session, topics, scenario, args.map, Path(args.run_dir), log,
-                                 value_net=Path(args.value_net), sinr_net=Path(args.sinr_net),
+                                 value_net=Path(args.value_net),
+                                 sinr_net=Path(args.sinr_net or sinr_map_for(scenario.name)),
                                  jammer=jammer, retrain=retrain)
         except (WeightsError, ValueError) as exc:
             print(f"cloud: error: {exc}", file=sys.stderr)

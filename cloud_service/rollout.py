@@ -16,13 +16,14 @@ import numpy as np
 from shared.features import Observation
 from shared.orca import orca_velocities, preferred_velocity_toward
 from shared.outcomes import Outcome
-from shared.paper import JammerSetting
+from shared.paper import JammerSetting, jammer_params
 from shared.policy import MAP_SPACING_M, LevelRaster, LookaheadPolicy, RadioMap, RasterMap
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 from world_sim.core import VectorWorld, episode_seed
 
 MapFor = Callable[[VectorWorld, np.ndarray], RadioMap]
+JammerSchedule = Callable[[int], JammerSetting | None]  # episode -> its jammer
 
 
 def fleet_observation(world: VectorWorld) -> Observation:
@@ -150,7 +151,7 @@ def run_episodes(
     controller: Controller,
     episodes: int,
     seed: int,
-    jammer: JammerSetting | None,
+    jammer: JammerSetting | None | JammerSchedule,
     num_uavs: int | None = None,
     num_envs: int = 64,
     on_step: Callable[[VectorWorld], None] | None = None,
@@ -158,17 +159,21 @@ def run_episodes(
     record_measurements: bool = False,
 ) -> EpisodeResults:
     """Fly ``episodes`` episodes (episode k seeded by ``episode_seed(seed, k)``) under one
-    jammer setting, ``num_envs`` at a time. Results are independent of ``num_envs``."""
+    jammer setting, or under ``jammer(k)`` for episode k, ``num_envs`` at a time. Results
+    are independent of ``num_envs``."""
+    jammer_at = jammer if callable(jammer) else (lambda _episode: jammer)
     world = VectorWorld(scenario, min(num_envs, episodes), num_uavs, record_measurements)
-    params = None
-    if jammer is not None:
-        params = JammerParams(jammer.x, jammer.y, jammer.power_w, scenario.jammer.height_m)
-    world.set_jammer(slice(None), params)
     outcomes = np.zeros((episodes, world.num_uavs), dtype=np.int8)
     returns = np.zeros((episodes, world.num_uavs))
     steps = np.zeros(episodes, dtype=np.int64)
     slot_episode = np.arange(world.num_envs)
-    world.reset(slot_episode, [episode_seed(seed, k) for k in slot_episode])
+
+    def start(env: int, episode: int) -> None:
+        world.set_jammer([env], jammer_params(scenario, jammer_at(episode)))
+        world.reset([env], [episode_seed(seed, episode)])
+
+    for env in slot_episode:
+        start(env, env)
     running = np.ones(world.num_envs, dtype=bool)
     next_episode = world.num_envs
     while running.any():
@@ -185,7 +190,7 @@ def run_episodes(
                 on_episode(episode)
             if next_episode < episodes:
                 slot_episode[env] = next_episode
-                world.reset([env], [episode_seed(seed, next_episode)])
+                start(env, next_episode)
                 next_episode += 1
             else:
                 running[env] = False

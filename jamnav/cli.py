@@ -232,6 +232,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     check_range("--episodes", args.episodes, 1)
     check_range("--uavs", args.uavs, 1, 64)
     check_range("--seed", args.seed, 0, SEED_MAX)
+    if args.swap_every is not None:
+        check_range("--swap-every", args.swap_every, 1)
     scenario = scenario_with_jammer(args)
     jammer = RadioModel.jammer_of(scenario)
     setting = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
@@ -246,7 +248,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     try:
         report = evaluate(scenario, args.method, args.episodes, args.seed, setting, args.uavs,
-                          Path(args.model), Path(args.sinr_map), on_episode)
+                          Path(args.model), args.sinr_map and Path(args.sinr_map), on_episode,
+                          args.swap_every)
     except EvaluationError as exc:
         raise UsageError(f"eval: {exc}") from None
     if not args.per_episode:
@@ -254,11 +257,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report))
     else:
-        print(f"{args.method}: " + ", ".join(
-            f"{key[:-5]} {report[key]:.1%}" for key in report if key.endswith("_rate")))
-        if "transient" in report:
-            print(f"  (after a transient of {report['transient']['episodes']} episodes)")
+        print(f"{args.method}, every episode: {rates_text(report)}")
+        for part in ("transient", "steady"):
+            if part in report and report[part]["episodes"]:
+                print(f"  {part} ({report[part]['episodes']} episodes): "
+                      f"{rates_text(report[part])}")
     return 0
+
+
+def rates_text(rates: dict) -> str:
+    return ", ".join(f"{key[:-5]} {rates[key]:.1%}" for key in rates if key.endswith("_rate"))
 
 
 def cmd_table(args: argparse.Namespace) -> int:
@@ -547,8 +555,12 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--seed", type=int, default=0)
     evaluation.add_argument("--model", default=str(VALUE_NET),
                             help="value network (default: the shipped paper-method one)")
-    evaluation.add_argument("--sinr-map", default=str(SINR_MAP_NO_JAMMER),
-                            help="initial SINR map of the proposed method (default: shipped)")
+    evaluation.add_argument("--sinr-map", default=None,
+                            help="initial SINR map of the proposed method (default: the "
+                                 "shipped no-jammer map of the scenario)")
+    evaluation.add_argument("--swap-every", type=int, default=None, metavar="K",
+                            help="resilience evaluation: move the jammer to a fresh random "
+                                 "setting every K episodes")
     evaluation.add_argument("--json", action="store_true", help="print JSON")
     evaluation.add_argument("--per-episode", action="store_true",
                             help="include each episode's per-UAV outcomes")

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 from jamnav.arguments import SEED_MAX, UsageError, check_range, output_path
+from shared.messages import mapper_summary
 from shared.scenario import ScenarioError, load_scenario
 from shared.topics import Topics, add_bus_arguments, endpoint_from
 
@@ -143,9 +144,14 @@ def _describe(status) -> str:
                 + (", finished" if d.get("finished") else ""))
     if status.role == "cloud":
         accuracy = d.get("map_accuracy")
-        return (f"map {d.get('map')} v{status.sinr_version}"
-                + (f" (accuracy {accuracy:.1%})" if isinstance(accuracy, float) else "")
+        text = (f"map {d.get('map')} v{status.sinr_version}"
+                + (f" (held-out accuracy {accuracy:.1%})" if isinstance(accuracy, float) else "")
                 + f", value net v{status.value_version}, {d.get('stored')} measurements stored")
+        if "map_phase" in d:
+            text += f"; mapper: {mapper_summary(status)}"
+            if d.get("estimate"):
+                text += f"; jammer estimate {d['estimate']}"
+        return text
     if status.role == "agent":
         return (f"value net v{status.value_version}, map v{status.sinr_version}, "
                 f"{d.get('decisions')} decisions (p99 {d.get('decision_p99_us', 0):.0f} us), "

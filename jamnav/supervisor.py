@@ -32,6 +32,7 @@ from cloud_service.sinr_memory import RUN_DIR_FILE
 from shared import access, bus
 from shared.messages import (
     JammerCommand,
+    JammerEstimate,
     JammerInfo,
     JammerReply,
     MessageError,
@@ -39,6 +40,8 @@ from shared.messages import (
     WorldState,
     decode,
     decode_event,
+    describe_estimate,
+    mapper_summary,
 )
 from shared.outcomes import FINAL_OUTCOMES
 from shared.scenario import Scenario
@@ -132,6 +135,7 @@ class Supervisor:
         self.swapped = False
         self.stopped_by = "end"
         self.world_status: ProcessStatus | None = None
+        self.cloud_status: ProcessStatus | None = None
         self.dropped = bus.Dropped(bus.setup_logging("supervisor"))
         self.credentials_path = (config.credentials or config.run_dir / access.CREDENTIALS_FILE
                                  ) if config.secure else None
@@ -274,7 +278,10 @@ class Supervisor:
             self._say(f"jammer changed to {what} (episode {event.episode}, step {event.step})")
         elif event.type == "change_detected":
             self._say(f"jammer change detected by the cloud (map v{event.version} right on "
-                      f"{event.accuracy:.0%} of the last window)")
+                      f"{event.accuracy:.0%} of recent uploads)")
+        elif event.type == "jammer_estimated":
+            self._say(f"jammer estimated with map v{event.estimate.map_version}: "
+                      f"{describe_estimate(event.estimate)}")
         elif event.type == "weights_refused":
             self._say(f"agent {event.uav} refused {event.weights} weights "
                       f"v{event.version if event.version is not None else '?'} "
@@ -296,6 +303,11 @@ class Supervisor:
             return
         if self.world_status.details.get("finished") and self.finished is None:
             self.finished = {"type": "run_finished", **self.world_status.details}
+        try:
+            self.cloud_status = bus.query(session, self.topics.status("cloud", 0),
+                                          ProcessStatus, timeout=0.5)
+        except bus.BusError:
+            pass
 
     def _statuses(self, session: zenoh.Session) -> list[ProcessStatus]:
         found = []
@@ -362,7 +374,8 @@ class Supervisor:
                 for i, status in enumerate(s.status[:8]))
             rate = self.world_status.details.get("steps_per_second") if self.world_status else 0
             line = (f"ep {s.episode} step {s.step:3d} | {len(self.outcomes)} done | "
-                    f"{rate or 0:.0f} steps/s | {uavs} | live {live}/{expected}")
+                    f"{rate or 0:.0f} steps/s | {mapper_summary(self.cloud_status)} | {uavs} | "
+                    f"live {live}/{expected}")
         if self.interactive:
             self.stream.write("\r\x1b[2K" + line[:160])
         else:
@@ -518,6 +531,9 @@ def summary_table(report: dict[str, Any]) -> str:
         if event["type"] in ("jammer_changed", "change_detected", "sinr_weights_published"):
             extra = {k: event[k] for k in ("version", "accuracy", "jammer") if k in event}
             rows.append(f"  {event['type']:<23} {json.dumps(extra)}")
+        elif event["type"] == "jammer_estimated":
+            rows.append(f"  {event['type']:<23} "
+                        f"{describe_estimate(JammerEstimate(**event['estimate']))}")
     return "\n".join(rows)
 
 

@@ -27,6 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, RootModel, ValidationError, m
 from shared.messages import (
     ChangeDetected,
     JammerChanged,
+    JammerEstimated,
     RetrainFailed,
     RunFinished,
     SinrWeightsPublished,
@@ -176,7 +177,8 @@ def grants(topics: Topics, role: str) -> dict[str, list[str]]:
     every_status = f"{topics.prefix}/status/**"
     if role == OPERATOR:
         return {"ask": [topics.jammer_control, every_status],
-                "subscribe": [f"{topics.prefix}/event/**", topics.state],
+                "subscribe": [f"{topics.prefix}/event/**", topics.state,
+                              topics.jammer_estimate],
                 "watch": [f"{topics.prefix}/alive/**"]}
     if role == WORLD:
         return {"publish": [topics.observation("*"), topics.state,
@@ -189,8 +191,9 @@ def grants(topics: Topics, role: str) -> dict[str, list[str]]:
                 "watch": [f"{topics.prefix}/alive/agent/**"]}
     if role == CLOUD:
         desks = [*weights, topics.measurements("*")]
-        return {"publish": [*weights, *_events(topics, ChangeDetected, SinrWeightsPublished,
-                                               RetrainFailed)],
+        return {"publish": [*weights, topics.jammer_estimate,
+                            *_events(topics, ChangeDetected, JammerEstimated,
+                                     SinrWeightsPublished, RetrainFailed)],
                 "see_subscribers": weights,
                 "subscribe": _events(topics, JammerChanged),
                 "serve": [*desks, topics.status(CLOUD, 0)],

@@ -228,6 +228,38 @@ class MeasurementSpec:
         return batch.records()[0]
 
 
+class SpotFilter:
+    """Which of its receiver's reports each UAV of a fleet keeps and uploads.
+
+    A UAV hovering (or crawling) measures the same spot again and again: one report per spot
+    and level is all the cloud needs, and repeats would let one UAV's spot fill the
+    detector's windows. A report is kept when it lies at least ``uav.measurement_spacing_m``
+    from the UAV's last kept one, or shows another level. Agents (one UAV each) and the
+    in-process evaluation (a whole fleet) keep reports through this one rule.
+    """
+
+    def __init__(self, scenario: Scenario, uavs: int):
+        self.spacing = scenario.uav.measurement_spacing_m
+        self.last_xy = np.full((uavs, 2), np.inf)
+        self.last_level = np.full(uavs, -1, dtype=np.int64)
+
+    def keep(self, uavs: np.ndarray, xy: np.ndarray, levels: np.ndarray) -> np.ndarray:
+        """Mask (n, S) of the reports to keep, for UAVs ``uavs`` (n,) that reported at ``xy``
+        (n, S, 2) with ``levels`` (n, S), in the order they were taken along the path."""
+        uavs = np.asarray(uavs, dtype=np.int64)
+        levels = np.asarray(levels)
+        kept = np.zeros(levels.shape, dtype=bool)
+        last_xy, last_level = self.last_xy[uavs], self.last_level[uavs]
+        for sample in range(levels.shape[1]):
+            here, level = xy[:, sample], levels[:, sample]
+            apart = np.hypot(*(here - last_xy).T) >= self.spacing
+            kept[:, sample] = apart | (level != last_level)
+            last_xy = np.where(kept[:, sample, None], here, last_xy)
+            last_level = np.where(kept[:, sample], level, last_level)
+        self.last_xy[uavs], self.last_level[uavs] = last_xy, last_level
+        return kept
+
+
 _PREDICT_CHUNK = 65_536
 
 

@@ -27,6 +27,7 @@ from shared.outcomes import Outcome
 
 MAX_UAVS = 64  # the scenario's own limit on missions.uav_count
 MAX_WEIGHTS_BYTES = 8 * 2**20
+MAX_REPORTS = 100  # the scenario's own limit on uav.measurements_per_step
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -82,6 +83,11 @@ class AgentObservation(Message):
     others_velocity: list[Place] = Field(max_length=MAX_UAVS - 1)
     others_radius: list[Physical] = Field(max_length=MAX_UAVS - 1)
     others_present: list[bool] = Field(max_length=MAX_UAVS - 1)
+    # What the UAV's receiver reported along the step that brought it here, (x, y, level) in
+    # the order taken, the last at ``position`` (scenario uav.measurements_per_step points;
+    # none at an episode's start). The world simulates the receiver, noise included.
+    measured: list[tuple[Coordinate, Coordinate, Level]] = Field(default_factory=list,
+                                                                 max_length=MAX_REPORTS)
 
     @model_validator(mode="after")
     def _same_length(self) -> AgentObservation:
@@ -92,8 +98,8 @@ class AgentObservation(Message):
         return self
 
     @classmethod
-    def of_row(cls, observation: Observation, row: int, episode: int, uav: int
-               ) -> AgentObservation:
+    def of_row(cls, observation: Observation, row: int, episode: int, uav: int,
+               measured: list[tuple[float, float, int]] = ()) -> AgentObservation:
         o = observation
         return cls.model_construct(
             episode=episode, step=int(o.step[row]), uav=uav,
@@ -105,6 +111,7 @@ class AgentObservation(Message):
             others_velocity=[tuple(v) for v in o.others_velocity[row].tolist()],
             others_radius=o.others_radius[row].tolist(),
             others_present=o.others_present[row].tolist(),
+            measured=list(measured),
         )
 
     def observation(self) -> Observation:
@@ -275,6 +282,38 @@ class JammerReply(Message):
     step: Count
 
 
+# -- cloud -> everyone ---------------------------------------------------------------------------
+class JammerEstimate(Message):
+    """The cloud's estimate of the jammer after a detected change, from the uploads alone.
+
+    ``map_version`` is the SINR map corrected with it (published at the same time). With
+    ``present`` false the uploads are best explained by no jammer at all, and the position and
+    power fields are None. Standard deviations come from the fit's likelihood.
+    """
+
+    map_version: Count
+    t: Finite  # unix seconds (simulated seconds in-process)
+    present: bool
+    x: Finite | None = None
+    y: Finite | None = None
+    power_w: NonNegative | None = None  # nominal, as `jamnav jammer set` takes it
+    effective_power_dbm: Finite | None = None  # what reaches the receiver in band
+    sd_x_m: NonNegative | None = None
+    sd_y_m: NonNegative | None = None
+    sd_power_db: NonNegative | None = None
+    measurements: Count  # post-change uploads it was fitted to
+    change_time: Finite | None = None  # the detector's estimate of when the change happened
+
+    @model_validator(mode="after")
+    def _located(self) -> JammerEstimate:
+        located = (self.x, self.y, self.power_w)
+        if self.present and None in located:
+            raise ValueError("a present jammer needs x, y and power_w")
+        if not self.present and any(v is not None for v in located):
+            raise ValueError("an absent jammer has no x, y or power_w")
+        return self
+
+
 # -- events -------------------------------------------------------------------------------------
 class _Event(Message):
     t: Finite  # unix seconds
@@ -301,6 +340,11 @@ class SinrWeightsPublished(_Event):
     accuracy: Accuracy | None
     sha256: Digest
     path: str = Field(max_length=4096)  # the safetensors file of this version (cloud's disk)
+
+
+class JammerEstimated(_Event):
+    type: Literal["jammer_estimated"] = "jammer_estimated"
+    estimate: JammerEstimate
 
 
 class RetrainFailed(_Event):
@@ -338,7 +382,8 @@ class RunFinished(_Event):
 
 
 Event = Annotated[
-    JammerChanged | ChangeDetected | SinrWeightsPublished | RetrainFailed | WeightsRefused
+    JammerChanged | ChangeDetected | JammerEstimated | SinrWeightsPublished | RetrainFailed
+    | WeightsRefused
     | UavOutcomes | RunFinished,
     Field(discriminator="type"),
 ]
@@ -362,6 +407,29 @@ class ProcessStatus(Message):
     sinr_version: Count | None = None
     dropped: dict[str, Count] = Field(default_factory=dict, max_length=64)
     details: dict[str, Scalar] = Field(default_factory=dict, max_length=64)
+
+
+def describe_estimate(estimate: JammerEstimate) -> str:
+    """One line for people: where the jammer is thought to be, and how sure the fit is."""
+    if not estimate.present:
+        return f"no jammer ({estimate.measurements} measurements)"
+    return (f"({estimate.x:.1f} +- {estimate.sd_x_m:.1f}, {estimate.y:.1f} +- "
+            f"{estimate.sd_y_m:.1f}) m, {estimate.power_w:.2f} W +- {estimate.sd_power_db:.1f} dB "
+            f"({estimate.measurements} measurements)")
+
+
+def mapper_summary(cloud: ProcessStatus | None) -> str:
+    """The online mapper's state from the cloud's status: map version, accuracy on recent
+    uploads, and what it does about a change (with the measurements gathered since)."""
+    if cloud is None or "map_phase" not in cloud.details:
+        return "map ?"
+    d = cloud.details
+    recent = d.get("recent_accuracy")
+    text = f"map v{cloud.sinr_version}" + (
+        f" {recent:.0%} on recent" if isinstance(recent, float) else "")
+    if d["map_phase"] != "watching":
+        text += f", {d['map_phase']} ({d.get('since_change')} since change)"
+    return text
 
 
 # -- the wire -----------------------------------------------------------------------------------

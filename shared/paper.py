@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+from shared.radio import JammerParams
+from shared.scenario import Scenario
+
 
 class JammerSetting(NamedTuple):
     x: float
@@ -13,6 +16,13 @@ class JammerSetting(NamedTuple):
     @property
     def label(self) -> str:
         return f"({self.x:g},{self.y:g}) {self.power_w:g} W"
+
+
+def jammer_params(scenario: Scenario, setting: JammerSetting | None) -> JammerParams | None:
+    """A setting as the radio model takes it, at the scenario's jammer height."""
+    if setting is None:
+        return None
+    return JammerParams(setting.x, setting.y, setting.power_w, scenario.jammer.height_m)
 
 
 TABLE_I_JAMMERS = (

@@ -5,7 +5,10 @@ G_m dB; Eq. (5) is a path loss (negative exponent), scaled by the jammer's effic
 of its nominal power that reaches the UAV receiver as in-band interference.
 
 This is the only implementation of the radio model: the world, training, evaluation, the cloud
-and the command line all call it.
+and the command line all call it. A scenario with a ``[shadowing]`` section adds log-normal
+shadowing to every link (``shared/shadowing.py``): that is the world's truth. The same model
+built with ``shadowed=False`` is the idealized Eq. (1)-(5) for the same layout, all that the
+operator's cloud can know.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from shared.scenario import Scenario
+from shared.shadowing import shadowing_field
 
 _LN10 = math.log(10.0)
 _CHUNK = 8192  # points per block: keeps the (points x GBS) temporaries inside the CPU cache
@@ -38,9 +42,13 @@ class RadioReading(NamedTuple):
 
 
 class RadioModel:
-    """SINR at UAV altitude for the GBS layout of one scenario, with any jammer or none."""
+    """SINR at UAV altitude for the GBS layout of one scenario, with any jammer or none.
 
-    def __init__(self, scenario: Scenario):
+    ``shadowed``: apply the scenario's shadowing, if it has any (the world's truth); without,
+    the idealized Eq. (1)-(5).
+    """
+
+    def __init__(self, scenario: Scenario, *, shadowed: bool = True):
         gbs, channel = scenario.gbs, scenario.channel
         self.altitude_m = scenario.uav.altitude_m
         self.gbs_xy = np.asarray(gbs.positions, dtype=np.float64)
@@ -56,6 +64,8 @@ class RadioModel:
         self._tilt_rad = math.radians(gbs.tilt_deg)
         self._beamwidth_rad = math.radians(gbs.beamwidth_3db_deg)
         self._max_attenuation_db = gbs.max_attenuation_db
+        self.measurement_noise_db = scenario.uav.measurement_noise_db
+        self.shadowing = shadowing_field(scenario) if shadowed else None
 
     @staticmethod
     def jammer_of(scenario: Scenario) -> JammerParams | None:
@@ -65,7 +75,22 @@ class RadioModel:
         return JammerParams(jam.x, jam.y, jam.power_w, jam.height_m)
 
     def gbs_received_power(self, xy: np.ndarray) -> np.ndarray:
-        """Received power from every GBS, numerator of Eq. (1): shape (..., K)."""
+        """Received power from every GBS, numerator of Eq. (1), with the world's shadowing if
+        it has any: shape (..., K)."""
+        received = self._ideal_gbs_received_power(xy)
+        if self.shadowing is None:
+            return received
+        return received * _gain_of(self.shadowing.at(xy)[..., :-1])
+
+    def jammer_interference(self, xy: np.ndarray, jammer: JammerParams | None) -> np.ndarray:
+        """I_J of Eq. (5) with a negative path-loss exponent, times the jamming efficiency, with
+        the world's shadowing if it has any."""
+        interference = self._ideal_jammer_interference(xy, jammer)
+        if self.shadowing is None or jammer is None:
+            return interference
+        return interference * _gain_of(self.shadowing.at(xy)[..., -1])
+
+    def _ideal_gbs_received_power(self, xy: np.ndarray) -> np.ndarray:
         xy = np.asarray(xy, dtype=np.float64)
         dx = xy[..., 0, None] - self.gbs_xy[:, 0]
         dy = xy[..., 1, None] - self.gbs_xy[:, 1]
@@ -80,8 +105,9 @@ class RadioModel:
         exponent = -0.5 * (self.alpha + 1.0) * np.log(slant_sq) - (_LN10 / 10.0) * attenuation_db
         return (self.gbs_power_w * self._height_gap) * np.exp(exponent)
 
-    def jammer_interference(self, xy: np.ndarray, jammer: JammerParams | None) -> np.ndarray:
-        """I_J of Eq. (5) with a negative path-loss exponent, times the jamming efficiency."""
+    def _ideal_jammer_interference(
+        self, xy: np.ndarray, jammer: JammerParams | None
+    ) -> np.ndarray:
         xy = np.asarray(xy, dtype=np.float64)
         if jammer is None:
             return np.zeros(xy.shape[:-1])
@@ -92,9 +118,33 @@ class RadioModel:
         power = np.asarray(jammer.power_w, dtype=np.float64) * self.jammer_efficiency
         return power * gap * slant_sq ** (-0.5 * (self.alpha + 1.0))
 
+    def _powers(self, xy: np.ndarray, jammer: JammerParams | None):
+        """Received GBS powers (n, K) and jammer interference (n,) at points (n, 2), with the
+        shadowing fields interpolated once for both."""
+        received = self._ideal_gbs_received_power(xy)
+        interference = self._ideal_jammer_interference(xy, jammer)
+        if self.shadowing is not None:
+            gain = _gain_of(self.shadowing.at(xy))
+            received = received * gain[:, :-1]
+            interference = interference * gain[:, -1]
+        return received, interference
+
     def level_of(self, sinr_db: np.ndarray) -> np.ndarray:
         """Quantized level: 0 below T_s, then one level per band between the edges."""
         return np.searchsorted(self.level_edges_db, sinr_db, side="right").astype(np.int8)
+
+    def measured_sinr_db(self, sinr_db: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The SINR a UAV's receiver measures where the true one is ``sinr_db``. Exact
+        receivers draw nothing from ``rng``, so the idealized world's random streams are
+        those it always had."""
+        sinr_db = np.asarray(sinr_db, dtype=np.float64)
+        if self.measurement_noise_db == 0:
+            return sinr_db
+        return sinr_db + rng.normal(0.0, self.measurement_noise_db, size=sinr_db.shape)
+
+    def measured_levels(self, sinr_db: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The level a UAV's receiver reports where the true SINR is ``sinr_db`` (int8)."""
+        return self.level_of(self.measured_sinr_db(sinr_db, rng))
 
     def evaluate(self, xy: np.ndarray, jammer: JammerParams | None = None) -> RadioReading:
         """SINR (Eq. 1) at every point of ``xy`` (shape (..., 2)); serving GBS = strongest."""
@@ -107,20 +157,15 @@ class RadioModel:
         serving = np.empty(n, dtype=np.int64)
         for start in range(0, n, _CHUNK):
             block = slice(start, start + _CHUNK)
-            received = self.gbs_received_power(flat[block])
-            best = received.argmax(axis=1)
-            signal = np.take_along_axis(received, best[:, None], axis=1)[:, 0]
             block_jammer = None
             if flat_jammer is not None:
                 block_jammer = JammerParams(
                     *(f if np.ndim(f) == 0 else f[block] for f in flat_jammer)
                 )
-            denominator = (
-                self.noise_w
-                + self.jammer_interference(flat[block], block_jammer)
-                + received.sum(axis=1)
-                - signal
-            )
+            received, interference = self._powers(flat[block], block_jammer)
+            best = received.argmax(axis=1)
+            signal = np.take_along_axis(received, best[:, None], axis=1)[:, 0]
+            denominator = self.noise_w + interference + received.sum(axis=1) - signal
             sinr[block] = signal / denominator
             serving[block] = best
         sinr_db = 10.0 * np.log10(sinr)
@@ -140,6 +185,10 @@ class RadioModel:
         ys = np.linspace(area.y_min, area.y_max, resolution)
         points = np.stack(np.meshgrid(xs, ys, indexing="xy"), axis=-1)
         return xs, ys, self.evaluate(points, jammer)
+
+
+def _gain_of(shadowing_db: np.ndarray) -> np.ndarray:
+    return np.exp((_LN10 / 10.0) * shadowing_db)
 
 
 def _flatten_jammer(jammer: JammerParams | None, batch_shape: tuple[int, ...]):

@@ -15,6 +15,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from shared.shadowing import MAX_GRID_SIDE, field_grid
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover - exercised only on Python 3.10
@@ -70,6 +72,25 @@ class Uav(_Strict):
     heading_choices: int = Field(ge=1, le=63)
     arrival_tolerance_m: Positive
     measurements_per_step: int = Field(ge=1, le=100)
+    # Std (dB) of the error on the SINR a UAV's receiver reports; 0 = exact reports.
+    measurement_noise_db: NonNegative = 0.0
+    # A UAV keeps a new measurement only this far from its last kept one, or at a new level:
+    # a hovering UAV would otherwise report one spot over and over.
+    measurement_spacing_m: NonNegative = 1.0
+
+
+class Shadowing(_Strict):
+    """Log-normal shadowing of the world: one spatially correlated field per transmitter.
+
+    Absent from a scenario, the world is the paper's idealized Eq. (1)-(5). Correlation over
+    distance d follows Gudmundson's exponential model, R(d) = exp(-d / decorrelation_m).
+    """
+
+    gbs_sigma_db: NonNegative  # std of the shadowing on every GBS link
+    jammer_sigma_db: NonNegative  # std of the shadowing on the jammer link
+    decorrelation_m: Positive  # distance at which the correlation falls to 1/e
+    seed: int = Field(ge=0)  # which realisation of the fields the world is
+    field_spacing_m: Positive  # grid spacing of the sampled fields
 
 
 class Timing(_Strict):
@@ -164,6 +185,7 @@ class Scenario(_Strict):
     missions: Missions
     policy: Policy
     training: Training
+    shadowing: Shadowing | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> Scenario:
@@ -176,6 +198,12 @@ class Scenario(_Strict):
             raise ValueError("policy.nearby_gbs exceeds the number of GBSs")
         if self.uav.altitude_m == self.gbs.height_m:
             raise ValueError("uav.altitude_m must differ from gbs.height_m (Eq. 3 divides by it)")
+        if self.shadowing is not None:
+            grid = field_grid(self.shadowing, self.area)
+            side = max(grid.period_x, grid.period_y)
+            if side > MAX_GRID_SIDE:
+                raise ValueError(f"shadowing: the fields need a grid of {side} points per side "
+                                 f"(at most {MAX_GRID_SIDE}): raise field_spacing_m")
         return self
 
     @property

@@ -8,3 +8,12 @@ MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 VALUE_NET = MODELS_DIR / "value_net.safetensors"  # the paper's method
 EXTENDED_VALUE_NET = MODELS_DIR / "value_net_extended.safetensors"
 SINR_MAP_NO_JAMMER = MODELS_DIR / "sinr_map_no_jammer.safetensors"
+SINR_MAP_NO_JAMMER_SHADOWED = MODELS_DIR / "sinr_map_no_jammer_shadowed.safetensors"
+
+# The survey map (no jammer) learned in each scenario's world; other scenarios share icc2021's.
+_SURVEY_MAPS = {"icc2021-shadowed": SINR_MAP_NO_JAMMER_SHADOWED}
+
+
+def sinr_map_for(scenario_name: str) -> Path:
+    """The shipped no-jammer SINR map learned from measurements in the named scenario."""
+    return _SURVEY_MAPS.get(scenario_name, SINR_MAP_NO_JAMMER)

@@ -89,6 +89,11 @@ class Topics:
     def sinr_map(self) -> str:
         return f"{self.prefix}/cloud/weights/sinr_map"
 
+    @property
+    def jammer_estimate(self) -> str:
+        """The cloud's latest estimate of the jammer (also kept for late queries)."""
+        return f"{self.prefix}/cloud/jammer_estimate"
+
     # -- control, events, presence ----------------------------------------------------------
     @property
     def jammer_control(self) -> str:

@@ -12,7 +12,11 @@ from pathlib import Path
 import pytest
 from support import free_endpoint, gone, wait_until
 
+from cloud_service.evaluation import evaluate
+from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
 from jamnav.cli import main as jamnav
+from shared.measurements import MeasurementSpec
+from shared.scenario import load_scenario, resolve_scenario_path
 
 
 def run_json(capsys, *argv: str):
@@ -102,3 +106,35 @@ def test_a_running_system_is_controlled_restarts_a_dead_agent_and_stops_on_ctrl_
         assert Path(figure).stat().st_size > 10_000
     code, _, err = run_json(capsys, "status", "--endpoint", endpoint)
     assert code == 1 and err.count("\n") == 1
+
+
+def _reports_in(path: Path, scenario) -> list[tuple]:
+    """The measurements of a memory, as a sorted list of (level, features): the same reports
+    in any order and with any ids or time stamps compare equal."""
+    with SinrMemory(path, MeasurementSpec.of(scenario)) as memory:
+        stored = memory.recent(memory.count())
+    return sorted(zip(stored.levels.tolist(), map(tuple, stored.features.round(4).tolist()),
+                      strict=True))
+
+
+def test_agents_measure_and_upload_what_the_in_process_evaluation_uploads(supervisor,
+                                                                         scenario, tmp_path):
+    """One measurement model: same seed, no jammer (so the map stays the survey map in both
+    and the flights agree step for step), then the same outcomes and the very same reports
+    in the cloud's memory, noise and de-duplication included."""
+    noisy = tmp_path / "noisy.toml"
+    noisy.write_text(Path(resolve_scenario_path("icc2021")).read_text().replace(
+        "measurement_noise_db = 0.0", "measurement_noise_db = 1.0"))
+    process = supervisor("--uavs", "3", "--episodes", "2", "--lockstep", "--map", "online",
+                         "--no-jammer", "--seed", "8", "--no-figures", "--scenario", str(noisy),
+                         "--endpoint", free_endpoint(), "--run-dir", str(tmp_path / "run"))
+    _, err = process.communicate(timeout=150)
+    assert process.returncode == 0, err[-2000:]
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    world = load_scenario(noisy)
+    expected = evaluate(world, "proposed", 2, 8, None, 3, memory_dir=tmp_path / "eval")
+    assert report["outcomes"] == expected["outcomes"]
+    assert not any(e["type"] == "change_detected" for e in report["events"])
+    on_the_bus = _reports_in(tmp_path / "run" / RUN_DIR_FILE, world)
+    in_process = _reports_in(tmp_path / "eval" / "measurements.sqlite", world)
+    assert len(in_process) > 100 and on_the_bus == in_process

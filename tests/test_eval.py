@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -69,10 +70,20 @@ def test_perfect_map_beats_outdated_map_on_a_blocking_jammer(capsys):
 def test_proposed_detects_the_jammer_and_adapts(capsys):
     report = run_json(capsys, "--method", "proposed", "--episodes", "20", "--jammer", "0,0,1",
                       *EXTENDED)
-    kinds = [event["type"] for event in report["events"]]
-    assert kinds[:2] == ["change_detected", "sinr_weights_published"]
-    assert 0 < report["transient"]["episodes"] < 20
-    assert report["steady_episodes"] == 20 - report["transient"]["episodes"]
+    kinds = [event["type"] for event in report["events"] if event["type"] in (
+        "change_detected", "jammer_estimated", "sinr_weights_published")]
+    assert kinds[:3] == ["change_detected", "jammer_estimated", "sinr_weights_published"]
+    estimates = [e for e in report["events"] if e["type"] == "jammer_estimated"]
+    first, last = estimates[0], estimates[-1]
+    # The first estimate is as good as it says; refined, it is within 5 m of (0, 0).
+    assert abs(first["x"]) <= 3 * first["sd_x_m"] and abs(first["y"]) <= 3 * first["sd_y_m"]
+    assert math.hypot(last["x"], last["y"]) <= 5.0
+    transient, steady = report["transient"]["episodes"], report["steady"]["episodes"]
+    assert 0 < transient < 20 and transient + steady == 20
+    # The headline counts every episode: the two parts, weighted by their episodes.
+    for key in ("success_rate", "disconnection_rate"):
+        whole = (transient * report["transient"][key] + steady * report["steady"][key]) / 20
+        assert report[key] == pytest.approx(whole)
     assert abs(sum(report[k] for k in report if k.endswith("_rate")) - 1) < 1e-9
 
 

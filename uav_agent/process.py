@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import logging
-import math
 import os
 import queue
 import secrets
@@ -28,7 +27,7 @@ import numpy as np
 import torch
 
 from shared import access, bus
-from shared.measurements import Measurement, MeasurementSpec, scenario_features
+from shared.measurements import Measurement, MeasurementSpec, SpotFilter, scenario_features
 from shared.messages import (
     MAX_UPLOAD,
     Action,
@@ -42,7 +41,6 @@ from shared.messages import (
 )
 from shared.networks import WeightsError, from_bytes
 from shared.policy import (
-    MAP_SPACING_M,
     LevelRaster,
     LookaheadPolicy,
     RasterMap,
@@ -53,10 +51,6 @@ from shared.topics import Topics, add_bus_arguments, endpoint_from
 from uav_agent.uploads import DEFAULT_BATCH, DEFAULT_CAPACITY, Outbox, Uploader
 
 ROLE = "agent"
-# A UAV hovering (or crawling) measures the same spot again and again: one measurement per
-# spot and level is all the cloud needs, and repeats would let one UAV's spot fill the
-# detector's windows. Closer than half a map cell counts as the same spot.
-SAME_SPOT_M = 0.5 * MAP_SPACING_M
 TIMINGS_KEPT = 4096
 
 
@@ -135,7 +129,7 @@ class AgentService:
         self.outbox = Outbox(outbox)
         self.uploader = Uploader(session, topics.measurements(uav), uav, self.outbox, log,
                                  upload_every, upload_after)
-        self.last_spot: tuple[float, float, int] | None = None
+        self.spots = SpotFilter(scenario, 1)
         # Measurement ids: this process's nonce and a count. Not (episode, step): a restarted
         # world flies its interrupted episode again, and those are new measurements.
         self.nonce = secrets.token_hex(4)
@@ -248,17 +242,20 @@ class AgentService:
         self.episode, self.step = observation.episode, observation.step
 
     def _measure(self, observation: AgentObservation) -> None:
-        (x, y), level = observation.position, observation.level
-        last = self.last_spot
-        if last is not None and level == last[2] and math.hypot(x - last[0],
-                                                                y - last[1]) < SAME_SPOT_M:
+        """Queue for upload what the receiver reported along the step, the same reports
+        (de-duplicated by the same rule) as an in-process evaluation uploads."""
+        if not observation.measured:
             return
-        self.last_spot = (x, y, level)
-        features = scenario_features(self.scenario, np.array(observation.position))
-        self.outbox.add(Measurement(
-            id=f"{self.uav}-{self.nonce}-{next(self.measured)}",
-            source=f"uav-{self.uav}", step=observation.step, time=time.time(),
-            features=features.tolist(), level=observation.level), self.upload_every)
+        reports = np.array(observation.measured, dtype=np.float64)
+        kept = reports[self.spots.keep(np.zeros(1), reports[None, :, :2], reports[None, :, 2])[0]]
+        if len(kept) == 0:
+            return
+        features = scenario_features(self.scenario, kept[:, :2])
+        now = time.time()
+        for row, level in zip(features.tolist(), kept[:, 2].astype(int).tolist(), strict=True):
+            self.outbox.add(Measurement(
+                id=f"{self.uav}-{self.nonce}-{next(self.measured)}", source=f"uav-{self.uav}",
+                step=observation.step, time=now, features=row, level=level), self.upload_every)
 
 
 def join(session, topics: Topics, stop: threading.Event, log: logging.Logger) -> int | None:

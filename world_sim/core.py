@@ -21,6 +21,7 @@ from shared.rewards import RewardModel
 from shared.scenario import Scenario
 
 _CANDIDATES_PER_DRAW = 64
+_RECEIVER_NOISE = 1  # second word of an episode's receiver-noise seed: a stream of its own
 _MAX_DRAWS = 500
 
 
@@ -111,14 +112,17 @@ class VectorWorld:
         self.level = np.zeros((e, j), dtype=np.int8)
         self.serving_gbs = np.zeros((e, j), dtype=np.int64)
         self.steps = np.zeros(e, dtype=np.int64)
-        # What each UAV measured along its last step (uav.measurements_per_step points, the
-        # step's end last), for the online SINR map; off unless asked for, as it costs radio
-        # evaluations that training does not need.
+        # What each UAV's receiver reported along its last step (uav.measurements_per_step
+        # points, the step's end last, each with the receiver's measurement noise), for the
+        # online SINR map; off unless asked for, as it costs radio evaluations that training
+        # does not need. The noise of episode k is drawn from k's seed alone, so a batch and a
+        # single environment (or the world process) report the same measurements.
         self.record_measurements = record_measurements
         samples = scenario.uav.measurements_per_step
         self.measured_xy = np.zeros((e, j, samples, 2))
         self.measured_level = np.zeros((e, j, samples), dtype=np.int8)
         self.measured = np.zeros((e, j), dtype=bool)
+        self._receiver_noise = [np.random.default_rng(0) for _ in range(e)]
         default = self.radio.default_jammer
         self.jammer_x = np.full(e, default.x if default else 0.0)
         self.jammer_y = np.full(e, default.y if default else 0.0)
@@ -156,7 +160,9 @@ class VectorWorld:
             self.destination[env] = goals
             to_goal = goals - starts
             self.heading[env] = np.arctan2(to_goal[:, 1], to_goal[:, 0])
+            self._receiver_noise[env] = np.random.default_rng([int(seed), _RECEIVER_NOISE])
         self.velocity[env_ids] = 0.0
+        self.measured[env_ids] = False
         self.status[env_ids] = int(Outcome.ACTIVE)
         self.steps[env_ids] = 0
         reading = self.radio.evaluate(self.position[env_ids], self.jammer(env_ids))
@@ -172,7 +178,10 @@ class VectorWorld:
             :, :, None]
         jammer = self.jammer()
         per_sample = JammerParams(*(np.asarray(f)[..., None] for f in jammer))
-        self.measured_level = self.radio.evaluate(self.measured_xy, per_sample).level
+        sinr_db = self.radio.evaluate(self.measured_xy, per_sample).sinr_db
+        self.measured_level = np.stack([
+            self.radio.measured_levels(sinr_db[env], self._receiver_noise[env])
+            for env in range(self.num_envs)])
         self.measured = active.copy()
 
     # -- dynamics --------------------------------------------------------------------------

@@ -208,7 +208,7 @@ class WorldService:
     def __init__(self, session: zenoh.Session, topics: Topics, scenario: Scenario,
                  config: WorldConfig, jammer: JammerInfo | None, log: logging.Logger):
         self.session, self.topics, self.config, self.log = session, topics, config, log
-        self.world = VectorWorld(scenario, 1, config.uavs)
+        self.world = VectorWorld(scenario, 1, config.uavs, record_measurements=True)
         self.world.set_jammer(slice(None), jammer_params(jammer))
         self.dropped = bus.Dropped(log)
         self.mailbox = Mailbox(config.uavs)
@@ -341,9 +341,17 @@ class WorldService:
             w.position, w.velocity, w.heading, w.destination, w.radius, w.max_speed, w.level,
             w.below_steps, w.active, w.steps)
         for uav in sorted(active):
-            self.observation_pubs[uav].put(
-                encode(AgentObservation.of_row(observation, uav, self.episode, uav)))
+            self.observation_pubs[uav].put(encode(AgentObservation.of_row(
+                observation, uav, self.episode, uav, self._reports(uav))))
         self._publish_state()
+
+    def _reports(self, uav: int) -> list[tuple[float, float, int]]:
+        """What UAV ``uav``'s receiver reported along its last step (none at a start)."""
+        w = self.world
+        if not w.measured[0, uav]:
+            return []
+        return [(x, y, level) for (x, y), level in zip(
+            w.measured_xy[0, uav].tolist(), w.measured_level[0, uav].tolist(), strict=True)]
 
     def _publish_event(self, event) -> None:
         bus.publish_event(self.session, self.topics, event)

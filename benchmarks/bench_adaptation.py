@@ -1,0 +1,182 @@
+"""Adaptation to a jammer change with four UAVs, in both radio worlds: how soon the change is
+detected, how soon a corrected map is out and how right it is, where the jammer is found, and
+how often a still jammer is taken for a change. One CPU thread.
+
+Uploads come from ``online_map_sim.Fleet``: four UAVs on straight legs across the area at top
+speed, reporting along their path as the agents do (``uav.measurements_per_step`` reports a
+step, the receiver's noise, the agents' de-duplication). The mapper runs inline in simulated
+time, so every figure is seconds of flight after the change, the same on any machine.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from benchmarks.common import Figure
+from cloud_service.jammer_estimation import estimate_jammer, positions_from_features
+from cloud_service.online_map_sim import Fleet
+from cloud_service.sinr_mapping import OnlineSinrMapper
+from cloud_service.sinr_memory import SinrMemory
+from shared.measurements import MeasurementBatch, MeasurementSpec, predict_levels, scenario_features
+from shared.networks import SinrMapNetwork, load_network
+from shared.paper import JammerSetting, jammer_params
+from shared.radio import RadioModel
+from shared.scenario import Scenario, load_scenario
+from shared.shipped import sinr_map_for
+
+SCENARIOS = ("icc2021", "icc2021-shadowed")
+UAVS = 4
+CHANGES = 20
+WARM_UP_S = 20.0  # flight before the change, so the fleet is spread over the area
+AFTER_S = 60.0  # flight after the change
+STILL_S = 1800.0  # "30 min of flight with a still jammer"
+LOCALIZATION_SETTINGS = 50
+LOCALIZATION_FLIGHT_S = 10.0
+TRUTH_SPACING_M = 2.0
+
+
+def run() -> list[Figure]:
+    figures = []
+    for name in SCENARIOS:
+        figures += adaptation_figures(load_scenario(name))
+    figures += localization_figures(load_scenario("icc2021-shadowed"))
+    return figures
+
+
+def random_setting(scenario: Scenario, rng: np.random.Generator) -> JammerSetting:
+    area, powers = scenario.area, scenario.training.jammer_power_range_w
+    x, y = rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max))
+    return JammerSetting(float(x), float(y), float(rng.uniform(*powers)))
+
+
+class TruthGrid:
+    """The true levels (shadowing included, no receiver noise) over the area, to score maps."""
+
+    def __init__(self, scenario: Scenario):
+        area = scenario.area
+        xs = np.arange(area.x_min, area.x_max + 1e-9, TRUTH_SPACING_M)
+        ys = np.arange(area.y_min, area.y_max + 1e-9, TRUTH_SPACING_M)
+        self.xy = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+        self.features = scenario_features(scenario, self.xy)
+        self.radio = RadioModel(scenario)
+        self.scenario = scenario
+
+    def accuracy(self, network: SinrMapNetwork, setting: JammerSetting | None) -> float:
+        truth = self.radio.evaluate(self.xy, jammer_params(self.scenario, setting)).level
+        return float((predict_levels(network, self.features) == truth).mean())
+
+
+def _mapper(scenario: Scenario, now: list[float], seed: int) -> OnlineSinrMapper:
+    network, card = load_network(sinr_map_for(scenario.name), {"kind": "sinr_map"})
+    memory = SinrMemory(":memory:", MeasurementSpec.of(scenario))
+    return OnlineSinrMapper(scenario, memory, network, float(card["accuracy"]),
+                            severe_rate=card.get("severe_rate"), clock=lambda: now[0],
+                            background=False, seed=seed)
+
+
+def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
+    """No jammer for WARM_UP_S, then a random jammer for AFTER_S."""
+    rng = np.random.default_rng(seed)
+    setting = random_setting(scenario, rng)
+    now = [0.0]
+    mapper = _mapper(scenario, now, seed)
+    fleet = Fleet(scenario, UAVS, rng)
+    dt = scenario.timing.step_s
+    first_map, accuracy_first, accuracy_30 = None, None, None
+    for step in range(int((WARM_UP_S + AFTER_S) / dt)):
+        now[0] = step * dt
+        after = now[0] - WARM_UP_S
+        fleet.fly()
+        version = mapper.version
+        mapper.ingest(fleet.uploads(jammer_params(scenario, setting if after >= 0 else None),
+                                    now[0], step))
+        if mapper.version != version and first_map is None and after >= 0:
+            first_map = after + dt
+            accuracy_first = truth.accuracy(mapper.current_network(), setting)
+        if accuracy_30 is None and after >= 30.0:
+            accuracy_30 = truth.accuracy(mapper.current_network(), setting)
+    detected = [e["t"] - WARM_UP_S for e in mapper.events if e["type"] == "change_detected"]
+    mapper.close()
+    return {"setting": setting, "detected": detected, "first_map": first_map,
+            "accuracy_first": accuracy_first, "accuracy_30": accuracy_30}
+
+
+def _still_detections(scenario: Scenario, seed: int) -> int:
+    """Change detections in STILL_S of flight with no jammer, from the survey map."""
+    now = [0.0]
+    mapper = _mapper(scenario, now, seed)
+    fleet = Fleet(scenario, UAVS, np.random.default_rng(seed))
+    for step in range(int(STILL_S / scenario.timing.step_s)):
+        now[0] = step * scenario.timing.step_s
+        fleet.fly()
+        mapper.ingest(fleet.uploads(None, now[0], step))
+    mapper.close()
+    return sum(e["type"] == "change_detected" for e in mapper.events)
+
+
+def _percentiles(values: list[float | None]) -> tuple[float, float]:
+    """Median and 90th percentile; a change never handled counts as infinitely late."""
+    data = np.array([np.inf if v is None else v for v in values])
+    return float(np.percentile(data, 50)), float(np.percentile(data, 90))
+
+
+def adaptation_figures(scenario: Scenario) -> list[Figure]:
+    truth = TruthGrid(scenario)
+    trials = [_trial(scenario, truth, 100 + k) for k in range(CHANGES)]
+    # Detection: the first detection at or after the change (earlier ones are false alarms).
+    detection = [min((t for t in r["detected"] if t >= 0), default=None) for r in trials]
+    early = sum(t < 0 for r in trials for t in r["detected"])
+    name = f"{scenario.name}, {UAVS} UAVs, {CHANGES} changes"
+    d50, d90 = _percentiles(detection)
+    m50, m90 = _percentiles([r["first_map"] for r in trials])
+    first = [r["accuracy_first"] for r in trials if r["accuracy_first"] is not None]
+    at_30 = [r["accuracy_30"] for r in trials]
+    return [
+        Figure(f"{name}: change detected, median s", d50, "s", 2, lower_is_better=True),
+        Figure(f"{name}: change detected, p90 s", d90, "s", 5, lower_is_better=True),
+        Figure(f"{name}: first corrected map, median s", m50, "s", 5, lower_is_better=True),
+        Figure(f"{name}: first corrected map, p90 s", m90, "s", 10, lower_is_better=True),
+        Figure(f"{name}: first map's accuracy vs truth, median %",
+               100 * float(np.median(first)) if first else 0.0, "%", 95),
+        Figure(f"{name}: accuracy vs truth 30 s after, median %", 100 * float(np.median(at_30)),
+               "%", 97),
+        Figure(f"{name}: accuracy vs truth 30 s after, worst %", 100 * float(np.min(at_30)),
+               "%"),
+        Figure(f"{name}: detections before the change (20 s each)", early, "count", 0,
+               lower_is_better=True),
+        Figure(f"{scenario.name}: false detections, {UAVS} UAVs, {STILL_S / 60:.0f} min still",
+               _still_detections(scenario, 7), "count", 0, lower_is_better=True),
+    ]
+
+
+def localization_figures(scenario: Scenario) -> list[Figure]:
+    """The estimator alone on LOCALIZATION_FLIGHT_S of four UAVs' uploads after a change."""
+    dt = scenario.timing.step_s
+    survey, _ = load_network(sinr_map_for(scenario.name), {"kind": "sinr_map"})
+    errors, power_errors, failures = [], [], 0
+    for k in range(LOCALIZATION_SETTINGS):
+        rng = np.random.default_rng(1000 + k)
+        setting = random_setting(scenario, rng)
+        fleet = Fleet(scenario, UAVS, rng)
+        batches = []
+        for step in range(int(LOCALIZATION_FLIGHT_S / dt)):
+            fleet.fly()
+            batches.append(fleet.uploads(jammer_params(scenario, setting), step * dt, step))
+        data = MeasurementBatch.concatenate(batches)
+        estimate = estimate_jammer(scenario, positions_from_features(scenario, data.features),
+                                   data.levels,
+                                   no_jammer_levels=predict_levels(survey, data.features))
+        if estimate is None or not estimate.present:
+            failures += 1
+            continue
+        errors.append(float(np.hypot(estimate.x - setting.x, estimate.y - setting.y)))
+        power_errors.append(abs(10 * np.log10(estimate.power_w / setting.power_w)))
+    name = f"{scenario.name}, jammer located from {LOCALIZATION_FLIGHT_S:.0f} s of {UAVS} UAVs"
+    e50, e90 = _percentiles(errors + [None] * failures)
+    return [
+        Figure(f"{name}: error median m", e50, "m", 5, lower_is_better=True),
+        Figure(f"{name}: error p90 m (no estimate = inf)", e90, "m", 10, lower_is_better=True),
+        Figure(f"{name}: power error median dB", float(np.median(power_errors)), "dB", 2,
+               lower_is_better=True),
+        Figure(f"{name}: no estimate, of {LOCALIZATION_SETTINGS}", failures, "count"),
+    ]

@@ -1,0 +1,509 @@
+"""Estimating the jammer (position, power, uncertainty) from the uploads alone.
+
+The cloud knows the GBS layout (the scenario) and the ideal radio model, Eq. (1)-(5), but not
+the shadowing of the world nor the receivers' noise. An upload says where the UAV was (its GBS
+features, ``positions_from_features``) and which SINR level it reported.
+
+Model. A measurement's SINR in dB is its no-jammer SINR less the jammer's loss,
+10 log10(1 + I_J / (N + I)), plus the receiver's error; the level is that quantized with the
+scenario's level edges (an ordinal probit). What the cloud believes of the no-jammer SINR
+(``sinr_beliefs``) is Gaussian: the ideal model's value with the world's shadowing as its
+spread, ``shadowing_sigma_db``; or, given the no-jammer map's level there (learned from
+measurements, so it carries the shadowing), that prior truncated to the level's band and
+moment-matched. The receiver adds ``report_sigma_db``, which also lumps the shadowing of the
+jammer's own link.
+
+Why the no-jammer map matters. In the scenarios of this project the jammer costs at most
+~2.5 dB of SINR (1 W; 0.8 dB at 0.25 W, jammer.efficiency_db = -20), less than the spread of
+the world's SINR about the ideal model (2.6-2.9 dB measured in icc2021-shadowed). From the
+ideal model alone a jammer cannot be told from the shadowing: 2,000 uniform measurements put
+it 50-75 m off (median), with confident but wrong standard deviations. Conditioned on the
+world's no-jammer levels, 8 m (power 2.7 dB high: the jammer link's log-normal shadowing
+raises its mean power by ~1 dB, and the rest is the model's simplifications).
+
+Cost. The GBS signal and interference of each measurement do not depend on the jammer, and a
+level's likelihood depends on the jammer only through r, its power over the interference plus
+noise (dB). So each measurement gets a table of its log-likelihood over r once; a hypothesis
+then costs one distance per measurement and a table look-up per power. A coarse search over
+the area (plus a margin: a jammer may stand at the edge) and log-spaced powers finds the
+region; a finer grid around it gives the estimate and its uncertainty as the moments of the
+likelihood-weighted (flat-prior) posterior.
+
+Shadowing is correlated over metres, so successive measurements along a path repeat one error
+rather than bring new evidence. Each measurement is weighted by one over the number of
+measurements in its square of side ``independent_spacing_m``: a square counts about once, so
+that the likelihood ratio and the standard deviations do not claim the certainty of
+thousands of independent reports.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+from scipy.special import log_ndtr
+
+from shared.measurements import PER_GBS_FEATURES, scenario_features
+from shared.radio import JammerParams, RadioModel
+from shared.scenario import Scenario
+
+# The model (see the module docstring); measured in icc2021-shadowed (three shadowing seeds):
+# the world's no-jammer SINR about the ideal model, sd 2.6-2.9 dB; the jammer's loss about the
+# ideal model's, sd 0.5-0.65 dB; receiver noise 1 dB.
+SHADOWING_SIGMA_DB = 3.0  # when no no-jammer map is given to fit it (``fit_shadowing_sigma``)
+REPORT_SIGMA_DB = 1.2
+OUTLIER_SHARE = 0.01  # reports that may contradict the model (a deep shadow, a map error)
+INDEPENDENT_SPACING_M = 3.0
+
+# The search (see ``estimate_jammer``).
+SEARCH_MARGIN_M = 10.0  # beyond the area: a jammer may stand at its edge or just outside
+COARSE_SPACING_M = 5.0
+COARSE_POWER_STEP_DB = 1.0
+POWER_SEARCH_DB = 10.0  # searched below and above the training range of nominal powers
+FINE_NODES = 13  # per side and per power of the refining grid
+
+# The decision (see ``estimate_jammer``).
+MIN_MEASUREMENTS = 30
+# 15 m let through fits 20 m off with the power 7 dB high from 10 s of four flights (4 of 50
+# settings); at 10 m one is left, and 60 s of flights lose 2 of 21 converged estimates.
+MAX_POSITION_SD_M = 10.0
+PRESENCE_LLR = 4.0
+EXCLUSION_LLR = 1.0
+
+# Offsets that agree to this (mean, metres) are the same place: float32 features of points
+# within ~100 m carry ~1e-5 m of rounding.
+_SAME_PLACE_M = 1e-3
+_RATIO_STEP_DB = 0.1  # resolution of the per-measurement likelihood tables over r
+# Below -30 dB the jammer moves the SINR by under 0.005 dB; at +30 dB it has cut it by 30 dB,
+# which leaves nothing but level 0. Beyond these the likelihood no longer changes with r.
+_RATIO_RANGE_DB = (-30.0, 30.0)
+_SINR_STEP_DB = 0.05  # resolution of the level tables over the SINR
+_SINR_RANGE_DB = (-60.0, 40.0)  # beyond, every level's probability is at its limit
+_SD_STEP_DB = 0.05  # spreads are rounded to this to share level tables
+# Hypotheses x measurements per vectorized block: its temporaries stay near the CPU cache.
+_BLOCK_ELEMENTS = 2**20
+
+
+class JammerEstimate(NamedTuple):
+    """The fitted jammer. With ``present`` false no jammer explains the uploads at least as
+    well as any jammer, and every position and power field is None."""
+
+    present: bool
+    x: float | None
+    y: float | None
+    power_w: float | None  # nominal, as `jamnav jammer set` takes it: effective / efficiency
+    effective_power_dbm: float | None  # what reaches the receiver in band
+    sd_x_m: float | None
+    sd_y_m: float | None
+    sd_power_db: float | None
+    measurements: int
+    # Weighted log-likelihood of the fitted jammer less that of no jammer (nats).
+    log_likelihood_ratio: float
+    cov_xy_m2: float | None = None  # posterior covariance of x and y
+
+
+class SinrBelief(NamedTuple):
+    """What the cloud believes of the world's no-jammer SINR at some points (Gaussian, dB)."""
+
+    mean_db: np.ndarray
+    sd_db: np.ndarray
+
+
+def positions_from_features(scenario: Scenario, features: np.ndarray) -> np.ndarray:
+    """UAV positions (n, 2) that produced the uploaded ``features`` (n, 5 K_n).
+
+    Each GBS in turn is taken as the nearest one: the UAV then sits at that GBS minus the
+    first (dx, dy). The candidate kept is the one whose own K_n nearest GBSs lie at the
+    uploaded offsets, exact to the features' float32 precision. Offsets are compared as
+    sorted lists of dx and of dy, so GBSs at equal distance (whose order rounding may swap)
+    do not matter. A row is NaN where no place gives its offsets (features of another
+    layout, or tampered with), and where two places do: with K_n below the GBS count a
+    regular layout repeats itself, and places a lattice step apart see the same nearest
+    offsets (with every GBS in view, as in icc2021, none do).
+    """
+    nearby, per_gbs = scenario.policy.nearby_gbs, len(PER_GBS_FEATURES)
+    features = np.asarray(features, dtype=np.float64).reshape(-1, nearby, per_gbs)
+    gbs_xy = np.asarray(scenario.gbs.positions, dtype=np.float64)
+    candidates = gbs_xy[None, :, :] - features[:, None, 0, :2]  # (n, K, 2)
+    seen = scenario_features(scenario, candidates).reshape(*candidates.shape[:2], nearby, per_gbs)
+    uploaded = np.sort(features[:, None, :, :2], axis=2)
+    miss = np.abs(np.sort(seen[..., :2], axis=2) - uploaded).mean(axis=(2, 3))
+    rows = np.arange(len(features))
+    xy = candidates[rows, miss.argmin(axis=1)]
+    elsewhere = np.abs(candidates - xy[:, None, :]).max(-1) > _SAME_PLACE_M
+    ambiguous = ((miss < _SAME_PLACE_M) & elsewhere).any(axis=1)
+    xy[ambiguous | (miss.min(axis=1) > _SAME_PLACE_M)] = np.nan
+    return xy
+
+
+def sinr_beliefs(
+    radio: RadioModel, xy: np.ndarray, no_jammer_levels: np.ndarray | None = None,
+    shadowing_sigma_db: float | None = None,
+) -> SinrBelief:
+    """The world's no-jammer SINR at points ``xy`` (n, 2): the ideal model's, give or take
+    ``shadowing_sigma_db``; with the no-jammer map's ``no_jammer_levels`` (n,), that prior
+    truncated to each level's band (its mean and sd). A sigma of None is fitted to the
+    levels given (``fit_shadowing_sigma``), or else ``SHADOWING_SIGMA_DB``."""
+    mean_db = radio.evaluate(xy).sinr_db
+    if no_jammer_levels is None:
+        sigma_db = SHADOWING_SIGMA_DB if shadowing_sigma_db is None else shadowing_sigma_db
+        return SinrBelief(mean_db, np.full_like(mean_db, sigma_db))
+    lower_db, upper_db = _band_edges(radio, np.asarray(no_jammer_levels, dtype=np.int64))
+    if shadowing_sigma_db is None:
+        shadowing_sigma_db = _fitted_sigma(mean_db, lower_db, upper_db)
+    return _truncated_normal(mean_db, shadowing_sigma_db, lower_db, upper_db)
+
+
+def fit_shadowing_sigma(radio: RadioModel, xy: np.ndarray, no_jammer_levels: np.ndarray):
+    """How far the world departs from the ideal model: the sd (dB) of its no-jammer SINR
+    about the ideal one that best explains the no-jammer map's levels at ``xy`` (n, 2)
+    (maximum likelihood over ``_SIGMA_CHOICES_DB``). The cloud learns it from its own map,
+    never from the world: measured, 0.01 dB (the least tried) with the map of icc2021,
+    3.5 dB with icc2021-shadowed's true no-jammer levels and 6.3 dB with the network
+    learned there (its own errors add to the shadowing)."""
+    lower_db, upper_db = _band_edges(radio, np.asarray(no_jammer_levels, dtype=np.int64))
+    return _fitted_sigma(radio.evaluate(xy).sinr_db, lower_db, upper_db)
+
+
+_SIGMA_CHOICES_DB = np.geomspace(0.01, 10.0, 61)  # 12 % apart
+_SIGMA_FIT_POINTS = 2000  # a stride through more points: the fit needs no more
+
+
+def _fitted_sigma(ideal_db: np.ndarray, lower_db: np.ndarray, upper_db: np.ndarray) -> float:
+    stride = max(1, len(ideal_db) // _SIGMA_FIT_POINTS)
+    ideal_db, lower_db, upper_db = ideal_db[::stride], lower_db[::stride], upper_db[::stride]
+    sigmas = _SIGMA_CHOICES_DB[:, None]
+    log_model = _log_band_probability((lower_db - ideal_db) / sigmas,
+                                      (upper_db - ideal_db) / sigmas)
+    # The map's own errors are outliers, not shadowing: the floor keeps them from ruling.
+    floor = math.log(OUTLIER_SHARE / 3.0)
+    score = np.logaddexp(math.log1p(-OUTLIER_SHARE) + log_model, floor).sum(axis=1)
+    return float(_SIGMA_CHOICES_DB[score.argmax()])
+
+
+def _band_edges(radio: RadioModel, levels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    bounds = np.concatenate([[-np.inf], radio.level_edges_db, [np.inf]])
+    return bounds[levels], bounds[levels + 1]
+
+
+def _truncated_normal(mean: np.ndarray, sd: float, lower: np.ndarray, upper: np.ndarray):
+    """Mean and sd of N(mean, sd^2) restricted to [lower, upper), stable far in the tails."""
+    a, b = (lower - mean) / sd, (upper - mean) / sd
+    log_mass = _log_band_probability(a, b)
+    # phi(z) / mass and z phi(z) / mass, zero at an infinite bound.
+    with np.errstate(invalid="ignore"):
+        density_a = np.where(np.isfinite(a), np.exp(-0.5 * a * a - _LOG_SQRT_2PI - log_mass), 0.0)
+        density_b = np.where(np.isfinite(b), np.exp(-0.5 * b * b - _LOG_SQRT_2PI - log_mass), 0.0)
+        moment_a = np.where(np.isfinite(a), a * density_a, 0.0)
+        moment_b = np.where(np.isfinite(b), b * density_b, 0.0)
+    shift = density_a - density_b
+    # Deep in a tail the variance formula cancels to rounding noise: keep a floor of 5 %.
+    variance = np.maximum(1.0 + moment_a - moment_b - shift * shift, 0.0025)
+    return SinrBelief(mean + sd * shift, sd * np.sqrt(variance))
+
+
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+def _log_band_probability(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """log(Phi(upper) - Phi(lower)), taken in the tail where the difference does not
+    cancel; -inf for an empty band."""
+    flip = lower + upper > 0
+    lower, upper = np.where(flip, -upper, lower), np.where(flip, -lower, upper)
+    log_upper = log_ndtr(upper)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        out = log_upper + np.log1p(-np.exp(log_ndtr(lower) - log_upper))
+    return np.where(upper > lower, out, -np.inf)
+
+
+def independence_weights(xy: np.ndarray, spacing_m: float) -> np.ndarray:
+    """One over the number of measurements in each one's square of side ``spacing_m``."""
+    cells = np.floor(xy / spacing_m).astype(np.int64)
+    _, cell_of, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    return 1.0 / counts[cell_of.reshape(-1)]
+
+
+class _LevelTables:
+    """log P(reported level | believed SINR, spread) under the ordinal probit with the
+    outlier floor, tabulated over the SINR for every spread in use (rounded to
+    ``_SD_STEP_DB``, so that a few tables serve thousands of measurements)."""
+
+    def __init__(self, edges_db: np.ndarray, sds_db: np.ndarray, outlier_share: float):
+        rounded, self.table_of = np.unique(np.rint(sds_db / _SD_STEP_DB), return_inverse=True)
+        self.table_of = self.table_of.reshape(-1)
+        sinr_db = np.arange(*_SINR_RANGE_DB, _SINR_STEP_DB)
+        self.sinr_count = len(sinr_db)
+        bounds = np.concatenate([[-np.inf], edges_db, [np.inf]])
+        self.level_count = len(bounds) - 1
+        spread = (rounded * _SD_STEP_DB)[:, None, None]
+        log_model = _log_band_probability((bounds[:-1, None] - sinr_db) / spread,
+                                          (bounds[1:, None] - sinr_db) / spread)
+        floor = math.log(outlier_share / self.level_count)
+        self.values = np.logaddexp(math.log1p(-outlier_share) + log_model, floor).ravel()
+
+    def log_probability(self, sinr_db: np.ndarray, levels: np.ndarray, rows: np.ndarray):
+        """For measurement ``rows`` (their spreads), reported ``levels`` and SINRs (any
+        broadcastable shapes)."""
+        step = np.rint((sinr_db - _SINR_RANGE_DB[0]) / _SINR_STEP_DB).astype(np.int64)
+        np.clip(step, 0, self.sinr_count - 1, out=step)
+        table = self.table_of[rows] * self.level_count + levels
+        return self.values[table * self.sinr_count + step]
+
+
+class _Evidence:
+    """The measurements, reduced to what a jammer hypothesis needs: each one's weighted
+    log-likelihood tabulated over r, the jammer's power over the ideal GBS interference plus
+    noise (dB). The tables span ``_RATIO_RANGE_DB`` widened by ``power_span_db`` on both
+    sides, so that one call's powers, up to that span apart, read them without clipping."""
+
+    def __init__(
+        self, radio: RadioModel, jammer_height_m: float, xy: np.ndarray, levels: np.ndarray,
+        weights: np.ndarray, belief: SinrBelief, report_sigma_db: float, outlier_share: float,
+        power_span_db: float,
+    ):
+        self.xy = xy
+        received = radio.gbs_received_power(xy)
+        self.interference_db = 10.0 * np.log10(
+            radio.noise_w + received.sum(axis=1) - received.max(axis=1))
+        self.gap_m = radio.altitude_m - jammer_height_m
+        self.slope_db = 5.0 * (radio.alpha + 1.0)  # I_J ~ slant_sq ** -((alpha + 1) / 2)
+        self.ratio_low_db = _RATIO_RANGE_DB[0] - power_span_db
+        ratios_db = np.arange(self.ratio_low_db, _RATIO_RANGE_DB[1] + power_span_db,
+                              _RATIO_STEP_DB)
+        loss_db = 10.0 * np.log10(1.0 + 10.0 ** (ratios_db / 10.0))  # SINR lost to the jammer
+        tables = _LevelTables(radio.level_edges_db,
+                              np.hypot(belief.sd_db, report_sigma_db), outlier_share)
+        rows = np.arange(len(xy))
+        table = tables.log_probability(belief.mean_db[:, None] - loss_db, levels[:, None],
+                                       rows[:, None])
+        self.table = (weights[:, None] * table).astype(np.float32).ravel()
+        self.ratio_count = len(ratios_db)
+        self.row_start = (rows * self.ratio_count).astype(np.int32)
+        self.no_jammer = float(weights @ tables.log_probability(belief.mean_db, levels, rows))
+
+    def log_likelihood_ratios(self, positions: np.ndarray, powers_dbw: np.ndarray) -> np.ndarray:
+        """Log-likelihood of a jammer at each of ``positions`` (H, 2) with each effective
+        power ``powers_dbw`` (P,), less that of no jammer: shape (H, P). Powers are read to
+        the table's step and may span at most the ``power_span_db`` the tables were made for."""
+        power_steps = np.rint((powers_dbw - powers_dbw.min()) / _RATIO_STEP_DB).astype(np.int32)
+        lowest_at = self.ratio_low_db - powers_dbw.min()  # path gain read at column 0
+        out = np.empty((len(positions), len(powers_dbw)))
+        per_block = max(1, _BLOCK_ELEMENTS // (len(powers_dbw) * len(self.xy)))
+        for start in range(0, len(positions), per_block):
+            block = positions[start : start + per_block]
+            offset = block[:, None, :] - self.xy
+            slant_sq = (offset * offset).sum(-1) + self.gap_m**2
+            gain_db = (10.0 * math.log10(self.gap_m) - self.slope_db * np.log10(slant_sq)
+                       - self.interference_db)
+            # Beyond the tables the likelihood no longer changes with r: clipping is exact.
+            lowest = np.clip(np.rint((gain_db - lowest_at) / _RATIO_STEP_DB),
+                             0, self.ratio_count - 1 - power_steps.max()).astype(np.int32)
+            index = (lowest + self.row_start)[:, None, :] + power_steps[:, None]
+            out[start : start + len(block)] = self.table[index].sum(axis=-1)
+        return out - self.no_jammer
+
+
+def estimate_jammer(
+    scenario: Scenario,
+    xy: np.ndarray,
+    levels: np.ndarray,
+    *,
+    no_jammer_levels: np.ndarray | None = None,
+    shadowing_sigma_db: float | None = None,
+    report_sigma_db: float = REPORT_SIGMA_DB,
+    outlier_share: float = OUTLIER_SHARE,
+    independent_spacing_m: float = INDEPENDENT_SPACING_M,
+    min_measurements: int = MIN_MEASUREMENTS,
+    max_position_sd_m: float = MAX_POSITION_SD_M,
+    presence_llr: float = PRESENCE_LLR,
+    exclusion_llr: float = EXCLUSION_LLR,
+) -> JammerEstimate | None:
+    """The jammer (at the scenario's jammer height) that best explains the reported
+    ``levels`` (n,) at positions ``xy`` (n, 2), or None when the data cannot pin it down.
+    ``no_jammer_levels`` (n,): the no-jammer map's level at each position, which the
+    estimate should be given whenever the world may differ from the ideal model (see the
+    module docstring). Rows with a NaN position are ignored.
+
+    Search: every ``COARSE_SPACING_M`` over the area plus ``SEARCH_MARGIN_M``, nominal powers
+    every ``COARSE_POWER_STEP_DB`` from ``POWER_SEARCH_DB`` below the scenario's training
+    range to as far above it; then ``FINE_NODES`` per side and per power around the best,
+    three coarse posterior standard deviations (at least one coarse step) each way. The
+    estimate is the mean of the fine posterior, its standard deviations those of the
+    posterior.
+
+    Decision, on the weighted log-likelihood ratio (LLR) of a jammer against none:
+    - fewer than ``min_measurements`` rows with a position: None;
+    - best coarse LLR below ``presence_llr``: no jammer (``present`` false) if the data rules
+      out a jammer of the training range's middle power (geometric mean) everywhere in the
+      area (its LLR below ``-exclusion_llr`` at every coarse node there); otherwise None, as
+      the data has not looked everywhere a jammer may be. A weaker jammer may remain: at
+      the range's lowest power (0.25 W in icc2021) it costs under 1 dB of SINR, which the
+      shadowing hides even from 2,000 measurements over the whole area;
+    - best coarse hypothesis on the edge of the search (position on the outer ring, power
+      the lowest or the highest searched), or a posterior position standard deviation along
+      the least certain direction above ``max_position_sd_m``: None;
+    - otherwise the estimate.
+
+    ``shadowing_sigma_db``: sd of the world's no-jammer SINR about the ideal model's; None
+    fits it to ``no_jammer_levels`` (``fit_shadowing_sigma``), or without them takes
+    ``SHADOWING_SIGMA_DB``. ``report_sigma_db``: what a report adds once that SINR is
+    known (receiver noise, the jammer link's own shadowing).
+    """
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    levels = np.asarray(levels, dtype=np.int64).reshape(-1)
+    located = np.isfinite(xy).all(axis=1)
+    xy, levels = xy[located], levels[located]
+    if no_jammer_levels is not None:
+        no_jammer_levels = np.asarray(no_jammer_levels, dtype=np.int64).reshape(-1)[located]
+    if len(xy) < min_measurements:
+        return None
+    radio = RadioModel(scenario, shadowed=False)
+    search = _CoarseSearch.of(scenario)
+    evidence = _Evidence(
+        radio, scenario.jammer.height_m, xy, levels,
+        independence_weights(xy, independent_spacing_m),
+        sinr_beliefs(radio, xy, no_jammer_levels, shadowing_sigma_db), report_sigma_db,
+        outlier_share, np.ptp(search.powers_dbw))
+    llr = evidence.log_likelihood_ratios(search.positions, search.powers_dbw)
+    if llr.max() < presence_llr:
+        excluded = llr[search.in_area, search.middle_of_range] < -exclusion_llr
+        return _absent(len(xy), float(llr.max())) if excluded.all() else None
+    best_position, best_power = np.unravel_index(llr.argmax(), llr.shape)
+    if search.on_edge[best_position] or best_power in (0, len(search.powers_dbw) - 1):
+        return None
+    fine, fine_llr = _refine(evidence, search, llr)
+    if fine.worst_sd_m > max_position_sd_m:
+        return None
+    return _present(scenario, fine, len(xy), fine_llr)
+
+
+def _refine(evidence: _Evidence, search: _CoarseSearch, llr: np.ndarray):
+    """The posterior on a finer grid around the best coarse hypothesis, and its best LLR."""
+    best_position, best_power = np.unravel_index(llr.argmax(), llr.shape)
+    coarse = _Posterior.of(search.positions, search.powers_dbw, llr)
+    positions = _square_grid(
+        search.positions[best_position], max(COARSE_SPACING_M, 3.0 * coarse.worst_sd_m))
+    powers_dbw = search.powers_dbw[best_power] + np.linspace(-1.0, 1.0, FINE_NODES) * max(
+        COARSE_POWER_STEP_DB, 3.0 * coarse.sd_power_db)
+    fine_llr = evidence.log_likelihood_ratios(positions, powers_dbw)
+    return _Posterior.of(positions, powers_dbw, fine_llr), float(fine_llr.max())
+
+
+def _absent(measurements: int, llr: float) -> JammerEstimate:
+    return JammerEstimate(False, None, None, None, None, None, None, None, measurements, llr)
+
+
+def _present(scenario: Scenario, fit: _Posterior, measurements: int, llr: float):
+    return JammerEstimate(
+        present=True, x=fit.x, y=fit.y,
+        power_w=10.0 ** ((fit.power_dbw - scenario.jammer.efficiency_db) / 10.0),
+        effective_power_dbm=fit.power_dbw + 30.0,
+        sd_x_m=math.sqrt(fit.cov_xy[0, 0]), sd_y_m=math.sqrt(fit.cov_xy[1, 1]),
+        sd_power_db=fit.sd_power_db, measurements=measurements, log_likelihood_ratio=llr,
+        cov_xy_m2=float(fit.cov_xy[0, 1]))
+
+
+class _Posterior(NamedTuple):
+    """Likelihood-weighted moments over a grid of hypotheses (flat prior in x, y and dB)."""
+
+    x: float
+    y: float
+    power_dbw: float
+    cov_xy: np.ndarray  # (2, 2), m^2
+    sd_power_db: float
+
+    @property
+    def worst_sd_m(self) -> float:
+        """Standard deviation along the position's least certain direction."""
+        return math.sqrt(max(float(np.linalg.eigvalsh(self.cov_xy)[-1]), 0.0))
+
+    @classmethod
+    def of(cls, positions: np.ndarray, powers_dbw: np.ndarray, llr: np.ndarray) -> _Posterior:
+        weight = np.exp(llr - llr.max())
+        weight /= weight.sum()
+        position_weight, power_weight = weight.sum(axis=1), weight.sum(axis=0)
+        mean_xy = position_weight @ positions
+        centred = positions - mean_xy
+        cov_xy = (centred * position_weight[:, None]).T @ centred
+        mean_power = float(power_weight @ powers_dbw)
+        sd_power = math.sqrt(max(float(power_weight @ (powers_dbw - mean_power) ** 2), 0.0))
+        return cls(float(mean_xy[0]), float(mean_xy[1]), mean_power, cov_xy, sd_power)
+
+
+class _CoarseSearch(NamedTuple):
+    positions: np.ndarray  # (H, 2)
+    on_edge: np.ndarray  # (H,) bool: the outer ring of the search
+    in_area: np.ndarray  # (H,) bool: inside the scenario's area
+    powers_dbw: np.ndarray  # (P,) effective powers
+    middle_of_range: int  # index of the training range's middle power (in dB)
+
+    @classmethod
+    def of(cls, scenario: Scenario) -> _CoarseSearch:
+        area = scenario.area
+        xs = _spaced(area.x_min - SEARCH_MARGIN_M, area.x_max + SEARCH_MARGIN_M, COARSE_SPACING_M)
+        ys = _spaced(area.y_min - SEARCH_MARGIN_M, area.y_max + SEARCH_MARGIN_M, COARSE_SPACING_M)
+        positions = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+        on_edge = np.isin(positions[:, 0], xs[[0, -1]]) | np.isin(positions[:, 1], ys[[0, -1]])
+        in_area = ((positions >= (area.x_min, area.y_min))
+                   & (positions <= (area.x_max, area.y_max))).all(axis=1)
+        low_w, high_w = scenario.training.jammer_power_range_w
+        low_db, high_db = 10.0 * math.log10(low_w), 10.0 * math.log10(high_w)
+        nominal_db = _spaced(low_db - POWER_SEARCH_DB, high_db + POWER_SEARCH_DB,
+                             COARSE_POWER_STEP_DB)
+        middle = int(np.abs(nominal_db - (low_db + high_db) / 2.0).argmin())
+        return cls(positions, on_edge, in_area, nominal_db + scenario.jammer.efficiency_db,
+                   middle)
+
+
+def _spaced(low: float, high: float, step: float) -> np.ndarray:
+    """From ``low`` to at least ``high`` every ``step``, centred on the span."""
+    count = math.ceil((high - low) / step - 1e-9) + 1
+    return (low + high) / 2.0 + step * (np.arange(count) - (count - 1) / 2.0)
+
+
+def _square_grid(center: np.ndarray, half_width: float) -> np.ndarray:
+    offsets = np.linspace(-half_width, half_width, FINE_NODES)
+    return np.stack(np.meshgrid(center[0] + offsets, center[1] + offsets), -1).reshape(-1, 2)
+
+
+def corrected_levels(
+    scenario: Scenario,
+    no_jammer_levels_at: Callable[[np.ndarray], np.ndarray],
+    estimate: JammerEstimate,
+    xy: np.ndarray,
+    *,
+    shadowing_sigma_db: float | None = None,
+) -> np.ndarray:
+    """The no-jammer map corrected with an estimated jammer, at points ``xy`` (..., 2).
+
+    At each point the no-jammer map's level says in which band the world's no-jammer SINR
+    lies, and the ideal model (give or take ``shadowing_sigma_db``; None fits it to the
+    map's levels at ``xy``, see ``fit_shadowing_sigma``) where in the band; the estimated
+    jammer takes the ideal model's loss off it. The corrected level is the most
+    probable one. The map was learned from measurements and so carries the GBS shadowing;
+    the ideal model's own levels do not (they agree with the world on ~61 % of icc2021-
+    shadowed), so taking them where the jammer matters loses more than it corrects.
+    ``no_jammer_levels_at`` maps points (m, 2) to levels, e.g. the no-jammer SINR network on
+    their features. With ``present`` false the no-jammer map stands.
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    flat = xy.reshape(-1, 2)
+    base = np.asarray(no_jammer_levels_at(flat)).reshape(-1)
+    if not estimate.present:
+        return base.reshape(xy.shape[:-1])
+    radio = RadioModel(scenario, shadowed=False)
+    jammer = JammerParams(estimate.x, estimate.y, estimate.power_w, scenario.jammer.height_m)
+    ideal_db = radio.evaluate(flat).sinr_db
+    loss_db = ideal_db - radio.evaluate(flat, jammer).sinr_db
+    band_low, band_high = _band_edges(radio, base.astype(np.int64))
+    if shadowing_sigma_db is None:
+        shadowing_sigma_db = _fitted_sigma(ideal_db, band_low, band_high)
+    bounds = np.concatenate([[-np.inf], radio.level_edges_db, [np.inf]])[:, None]
+    # Level k needs the no-jammer SINR in [bounds_k + loss, bounds_k+1 + loss) and its band.
+    low = np.maximum(band_low, bounds[:-1] + loss_db)
+    high = np.minimum(band_high, bounds[1:] + loss_db)
+    log_odds = _log_band_probability((low - ideal_db) / shadowing_sigma_db,
+                                     (high - ideal_db) / shadowing_sigma_db)
+    return log_odds.argmax(axis=0).astype(base.dtype).reshape(xy.shape[:-1])

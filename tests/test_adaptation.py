@@ -1,0 +1,162 @@
+"""The measurement model shared by agents and evaluation, the change detector's rule, the
+jammer estimate on the wire, and the resilience evaluation's schedule."""
+
+from __future__ import annotations
+
+import math
+
+import msgpack
+import numpy as np
+import pytest
+
+from cloud_service.evaluation import swapping_jammers, transient_episodes
+from cloud_service.sinr_mapping import ChangeDetector, severe_disagreements
+from shared.measurements import SpotFilter
+from shared.messages import (
+    JammerEstimate,
+    JammerEstimated,
+    MessageError,
+    decode,
+    decode_event,
+    describe_estimate,
+    encode,
+    zenoh_cli_decoder,
+)
+from shared.paper import JammerSetting
+from shared.topics import Topics
+from tests.conftest import variant
+from world_sim.core import VectorWorld, episode_seed
+
+
+# -- what a UAV keeps -------------------------------------------------------------------------
+def test_spot_filter_keeps_a_report_per_spacing_or_new_level(scenario):
+    spots = SpotFilter(variant(scenario, uav={"measurement_spacing_m": 1.0}), 2)
+    xy = np.array([[[0.0, 0.0], [0.4, 0.0], [0.9, 0.0], [1.0, 0.0], [1.2, 0.0]],
+                   [[5.0, 5.0], [5.0, 5.0], [5.0, 5.0], [5.0, 5.0], [5.0, 5.0]]])
+    levels = np.array([[2, 2, 2, 2, 1], [0, 0, 0, 2, 2]])
+    kept = spots.keep(np.array([0, 1]), xy, levels)
+    # UAV 0: first kept; 0.4 and 0.9 m from it dropped; 1.0 m kept; a new level kept.
+    # UAV 1 hovers: the first report, then only the change of level.
+    np.testing.assert_array_equal(kept, [[1, 0, 0, 1, 1], [1, 0, 0, 1, 0]])
+    # The rule carries over from one call (step) to the next.
+    again = spots.keep(np.array([1]), np.array([[[5.0, 5.0], [5.0, 6.0]]]), np.array([[2, 2]]))
+    np.testing.assert_array_equal(again, [[0, 1]])
+
+
+def test_the_world_reports_along_the_path_with_seeded_noise(scenario):
+    noisy = variant(scenario, uav={"measurement_noise_db": 1.0})
+    reports = []
+    for envs in (1, 3):
+        world = VectorWorld(noisy, envs, 4, record_measurements=True)
+        world.reset(np.arange(envs), [episode_seed(5, k) for k in range(envs)])
+        start = world.position.copy()
+        world.step(np.full((envs, 4), 5.0), world.heading)
+        samples = noisy.uav.measurements_per_step
+        # Evenly along the step, the last at the new position.
+        np.testing.assert_allclose(world.measured_xy[:, :, -1], world.position)
+        np.testing.assert_allclose(world.measured_xy[:, :, 0],
+                                   start + (world.position - start) / samples)
+        reports.append(world.measured_level[0].copy())
+    # Episode 0's noise comes from its own seed, however many environments fly.
+    np.testing.assert_array_equal(reports[0], reports[1])
+    radio = world.radio
+    sinr_db = np.zeros(20_000) - 3.0 + 1e-9  # on the threshold: noise decides the level
+    below = radio.measured_levels(sinr_db, np.random.default_rng(0)) == 0
+    assert abs(below.mean() - 0.5) < 0.02  # symmetric noise
+
+
+# -- the detector -----------------------------------------------------------------------------
+def test_severe_disagreement_crosses_the_whole_band():
+    predicted = np.array([0, 0, 0, 1, 1, 2, 2, 2])
+    measured = np.array([0, 1, 2, 0, 2, 0, 1, 2])
+    np.testing.assert_array_equal(severe_disagreements(predicted, measured, 3),
+                                  [0, 0, 1, 0, 0, 1, 0, 0])
+
+
+def test_detector_fires_on_one_uavs_run_not_on_scattered_disagreements():
+    detector = ChangeDetector(baseline_rate=0.02, alarm_rate=0.5, threshold=16.0)
+    up, down = math.log(0.5 / 0.02), math.log(0.5 / 0.98)
+    # Scattered: one severe disagreement in twenty per UAV never adds up.
+    scattered = np.tile([True] + [False] * 19, 50)
+    sources = [f"uav-{i // 20 % 4}" for i in range(scattered.size)]
+    check = detector.update(scattered, sources, np.arange(scattered.size, dtype=float))
+    assert not check.fired and detector.armed and check.statistic < up
+    # A run by one UAV: fires once its sum reaches the threshold, i.e. after
+    # ceil(16 / up) = 5 severe reports in a row (the others' reports do not dilute it).
+    detector.reset(0.02)
+    severe = np.array([False, True, True, False, True, True, True, True, True])
+    run_sources = ["uav-2", "uav-1", "uav-1", "uav-3", "uav-1", "uav-1", "uav-1", "uav-1",
+                   "uav-1"]
+    check = detector.update(severe, run_sources, np.arange(10.0, 19.0))
+    assert check.fired and check.source == "uav-1" and not detector.armed
+    assert check.t == 16.0  # the fifth severe report of uav-1
+    assert check.statistic == pytest.approx(5 * up)
+    assert detector.change_start == 11.0  # where uav-1's excursion began
+    assert detector.update(severe, run_sources, np.arange(9.0)) is None  # disarmed
+    # The downward step: a correct report takes log((1-q)/(1-p)) off.
+    detector.reset(0.02)
+    check = detector.update(np.array([True, False]), ["a", "a"], np.zeros(2))
+    assert check.statistic == pytest.approx(up + down)
+
+
+# -- the estimate on the wire -----------------------------------------------------------------
+def _estimate(**change) -> JammerEstimate:
+    fields = dict(map_version=3, t=12.5, present=True, x=24.0, y=-9.5, power_w=0.9,
+                  effective_power_dbm=9.5, sd_x_m=1.5, sd_y_m=2.0, sd_power_db=0.8,
+                  measurements=420, change_time=10.0)
+    return JammerEstimate(**{**fields, **change})
+
+
+def test_estimate_round_trips_and_decodes_for_zenoh_cli():
+    estimate = _estimate()
+    assert decode(JammerEstimate, encode(estimate)) == estimate
+    event = JammerEstimated(t=1.0, source="cloud", estimate=estimate)
+    assert decode_event(encode(event)) == event
+    assert '"x": 24.0' in zenoh_cli_decoder("k", encode(estimate))
+    assert describe_estimate(estimate) == (
+        "(24.0 +- 1.5, -9.5 +- 2.0) m, 0.90 W +- 0.8 dB (420 measurements)")
+    absent = JammerEstimate(map_version=4, t=1.0, present=False, measurements=80)
+    assert decode(JammerEstimate, encode(absent)) == absent
+    assert Topics("p").jammer_estimate == "p/cloud/jammer_estimate"
+
+
+@pytest.mark.parametrize("damage", [
+    {"x": None}, {"power_w": -1.0}, {"sd_x_m": -0.1}, {"x": float("nan")},
+    {"present": False}, {"measurements": -3},
+])
+def test_a_malformed_estimate_is_refused(damage):
+    data = _estimate().model_dump()
+    data.update(damage)
+    with pytest.raises(MessageError):
+        decode(JammerEstimate, msgpack.packb(data))
+
+
+# -- the resilience evaluation ----------------------------------------------------------------
+def test_swapped_jammers_are_seeded_and_inside_the_area(scenario):
+    first = JammerSetting(0.0, 0.0, 1.0)
+    schedule = swapping_jammers(scenario, first, 10, seed=4)
+    again = swapping_jammers(scenario, first, 10, seed=4)
+    settings = [schedule(k) for k in range(0, 100, 10)]
+    assert settings[0] == first and schedule(9) == first and schedule(10) != first
+    assert settings == [again(k) for k in range(0, 100, 10)]
+    assert len(set(settings)) == 10
+    low, high = scenario.training.jammer_power_range_w
+    for setting in settings[1:]:
+        assert scenario.area.contains(setting.x, setting.y)
+        assert low <= setting.power_w <= high
+    assert swapping_jammers(scenario, first, None, 4)(500) == first
+
+
+def test_transient_runs_from_each_change_to_the_first_newer_map():
+    a, b = JammerSetting(0, 0, 1), JammerSetting(9, 9, 1)
+
+    def schedule(episode):
+        return a if episode < 5 else b
+
+    # Map versions at each episode's start: v1 arrives during episode 1, v2 during 6.
+    versions = np.array([0, 0, 1, 1, 1, 1, 1, 2, 2, 2])
+    np.testing.assert_array_equal(transient_episodes(schedule, versions),
+                                  [1, 1, 0, 0, 0, 1, 1, 0, 0, 0])
+    # No jammer at the start: the no-jammer map is right, nothing is transient.
+    np.testing.assert_array_equal(transient_episodes(lambda k: None, np.zeros(4, int)),
+                                  [0, 0, 0, 0])
