@@ -147,8 +147,9 @@ class CloudService:
         base, _ = load_network(sinr_net, {"kind": "sinr_map", "input_size": spec.feature_size,
                                           "levels": spec.level_count})
         self.mapper = OnlineSinrMapper(self.scenario, self.memory, network, float(accuracy),
-                                       severe_rate=card.get("severe_rate"), base_network=base, publish=self._on_retrained,
-                                       retrain=retrain, version=version)
+                                       severe_rate=card.get("severe_rate"), base_network=base,
+                                       publish=self._on_retrained, retrain=retrain,
+                                       version=version)
         data = path.read_bytes()
         return SinrMap(version=version, mode="online", sha256=sha256(data), data=data,
                        accuracy=float(accuracy))

@@ -388,7 +388,8 @@ class OnlineSinrMapper:
 
     ``ingest`` stores a batch in the memory D_w and feeds the detector the map's severe
     disagreements with it (baseline: ``severe_rate``, the map's own rate on fresh reports as
-    its card states it; at worst one minus its ``accuracy``). Once a change is declared (its start estimated by the detector):
+    its card states it; at worst one minus its ``accuracy``). Once a change is declared (its
+    start estimated by the detector):
     1. from ``retrain.estimate_from`` post-change measurements on, the jammer is estimated
        from them (position, power, uncertainty; ``jammer_estimation``); an estimate that
        does not converge is never published and is tried again with more data;
