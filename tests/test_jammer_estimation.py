@@ -1,0 +1,292 @@
+"""The jammer estimate from uploads: positions, fit, decision, corrected map.
+
+The truth is icc2021-shadowed's world (correlated shadowing on every link, receiver noise);
+the estimator sees only levels, positions and the no-jammer map's levels. Bounds are set
+from measured spreads (see each test) with a margin, and fail on a real regression.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from cloud_service.jammer_estimation import (
+    JammerEstimate,
+    corrected_levels,
+    estimate_jammer,
+    fit_shadowing_sigma,
+    positions_from_features,
+)
+from shared.measurements import SpotFilter, scenario_features
+from shared.paper import TABLE_I_JAMMERS
+from shared.radio import JammerParams, RadioModel
+from shared.scenario import Scenario, load_scenario
+from tests.conftest import variant
+
+SETTINGS = 10  # seeded jammer settings (and shadowing realisations) per accuracy check
+
+
+@pytest.fixture(scope="module")
+def shadowed() -> Scenario:
+    return load_scenario("icc2021-shadowed")
+
+
+def world(shadowed: Scenario, seed: int) -> Scenario:
+    """icc2021-shadowed with shadowing realisation ``seed``."""
+    return variant(shadowed, shadowing={"seed": seed})
+
+
+def random_jammer(scenario: Scenario, rng: np.random.Generator) -> JammerParams:
+    area = scenario.area
+    return JammerParams(rng.uniform(area.x_min, area.x_max), rng.uniform(area.y_min, area.y_max),
+                        rng.uniform(0.25, 1.0), scenario.jammer.height_m)
+
+
+def reports(scenario: Scenario, jammer: JammerParams | None, xy: np.ndarray, rng):
+    """Levels the world's receivers report at ``xy``, and the world's no-jammer levels there
+    (what a perfectly learned no-jammer map says)."""
+    truth = RadioModel(scenario)
+    levels = truth.measured_levels(truth.evaluate(xy, jammer).sinr_db, rng)
+    return levels, truth.evaluate(xy).level
+
+
+def uniform_points(scenario: Scenario, rng: np.random.Generator, n: int) -> np.ndarray:
+    area = scenario.area
+    return rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max), size=(n, 2))
+
+
+def flights(scenario: Scenario, jammer, rng, uavs: int = 4, seconds: float = 10.0):
+    """What ``uavs`` UAVs flying straight, random paths at full speed for ``seconds`` upload:
+    uav.measurements_per_step reports a step, de-duplicated as agents do (``SpotFilter``)."""
+    area, uav = scenario.area, scenario.uav
+    samples = round(seconds / scenario.timing.step_s * uav.measurements_per_step)
+    length = uav.max_speed_mps * seconds
+    starts = np.empty((uavs, 2))
+    ends = np.empty((uavs, 2))
+    for k in range(uavs):
+        while True:
+            starts[k] = uniform_points(scenario, rng, 1)[0]
+            heading = rng.uniform(0.0, 2.0 * np.pi)
+            ends[k] = starts[k] + length * np.array([np.cos(heading), np.sin(heading)])
+            if area.contains(*ends[k]):
+                break
+    along = np.arange(1, samples + 1) / samples
+    xy = starts[:, None, :] + along[None, :, None] * (ends - starts)[:, None, :]
+    levels, no_jammer = reports(scenario, jammer, xy, rng)
+    kept = SpotFilter(scenario, uavs).keep(np.arange(uavs), xy, levels)
+    return xy[kept], levels[kept], no_jammer[kept]
+
+
+def position_error(estimate: JammerEstimate, jammer: JammerParams) -> float:
+    return float(np.hypot(estimate.x - jammer.x, estimate.y - jammer.y))
+
+
+def power_error_db(estimate: JammerEstimate, jammer: JammerParams) -> float:
+    return float(10.0 * np.log10(estimate.power_w / jammer.power_w))
+
+
+# -- positions ----------------------------------------------------------------------------------
+def test_positions_round_trip_the_features(scenario):
+    rng = np.random.default_rng(0)
+    gbs = np.asarray(scenario.gbs.positions)
+    # Random points, the GBSs themselves, and points equidistant from two GBSs (ties).
+    xy = np.concatenate([uniform_points(scenario, rng, 3000) * 1.2, gbs,
+                         [[0.0, 0.0], [0.0, 16.5], [25.0, -16.5], [-25.0, 0.0]]])
+    recovered = positions_from_features(scenario, scenario_features(scenario, xy))
+    assert recovered.shape == xy.shape
+    np.testing.assert_allclose(recovered, xy, atol=1e-4)
+
+
+def test_positions_no_place_gives_are_nan(scenario):
+    xy = uniform_points(scenario, np.random.default_rng(2), 100)
+    features = scenario_features(scenario, xy)
+    features[::2, 5] += 0.5  # the second GBS's dx no longer fits the first's
+    recovered = positions_from_features(scenario, features)
+    assert np.isnan(recovered[::2]).all()
+    np.testing.assert_allclose(recovered[1::2], xy[1::2], atol=1e-4)
+
+
+def test_positions_a_repeating_layout_cannot_tell_apart_are_nan(scenario):
+    few = variant(scenario, policy={"nearby_gbs": 4})
+    xy = uniform_points(few, np.random.default_rng(1), 2000)
+    recovered = positions_from_features(few, scenario_features(few, xy))
+    unknown = np.isnan(recovered).any(axis=1)
+    assert 0 < unknown.mean() < 1  # a lattice step apart, the 4 nearest offsets repeat
+    np.testing.assert_allclose(recovered[~unknown], xy[~unknown], atol=1e-4)
+
+
+# -- the fit ------------------------------------------------------------------------------------
+def fit_settings(shadowed: Scenario | None, data: str):
+    """(estimate, jammer) for SETTINGS seeded settings: a random jammer (uniform in the area,
+    0.25-1 W) in shadowing realisation ``seed`` of icc2021-shadowed (or in icc2021 when
+    ``shadowed`` is None), measured ``data``: "uniform" (2,000 points) or "flights"."""
+    out = []
+    for seed in range(SETTINGS):
+        rng = np.random.default_rng(seed)
+        scenario = load_scenario() if shadowed is None else world(shadowed, seed)
+        jammer = random_jammer(scenario, rng)
+        if data == "uniform":
+            xy = uniform_points(scenario, rng, 2000)
+            levels, no_jammer = reports(scenario, jammer, xy, rng)
+        else:
+            xy, levels, no_jammer = flights(scenario, jammer, rng)
+        out.append((estimate_jammer(scenario, xy, levels, no_jammer_levels=no_jammer), jammer))
+    return out
+
+
+def test_recovers_a_jammer_in_the_shadowed_world(shadowed):
+    """Measured over 30 such settings: 23 converge; median error 9 m (7-11 m per ten),
+    median power error 2.2 dB. Without the no-jammer levels the median error is 50-75 m."""
+    fits = [(e, j) for e, j in fit_settings(shadowed, "uniform") if e is not None]
+    located = [(e, j) for e, j in fits if e.present]
+    assert len(located) >= 6
+    assert np.median([position_error(e, j) for e, j in located]) <= 13.0
+    assert np.median([abs(power_error_db(e, j)) for e, j in located]) <= 3.0
+    for estimate, jammer in located:  # its standard deviations hold the error
+        assert position_error(estimate, jammer) <= 4.0 * np.hypot(estimate.sd_x_m,
+                                                                  estimate.sd_y_m)
+
+
+def test_recovers_a_jammer_in_the_ideal_world():
+    """icc2021, exact receivers. Measured over 30: 26 converge; median error 4 m, median
+    power error 0.8 dB: the level quantization and a loss of at most ~2.5 dB, not noise,
+    limit it."""
+    located = [(e, j) for e, j in fit_settings(None, "uniform") if e is not None and e.present]
+    assert len(located) >= 7
+    assert np.median([position_error(e, j) for e, j in located]) <= 6.0
+    assert np.median([abs(power_error_db(e, j)) for e, j in located]) <= 1.5
+
+
+def test_ten_seconds_of_four_flights_do_not_pin_a_jammer_down(shadowed):
+    """4 UAVs, 10 s of straight flight (~100 reports each): the jammer's footprint is a broad
+    dip of ~2 dB, which a few paths through shadowing cannot place. Measured: no estimate in
+    30 settings (1 in 50 in icc2021's own realisation). The estimator must say so (None),
+    not guess."""
+    fits = fit_settings(shadowed, "flights")
+    assert sum(e is None for e, _ in fits) >= SETTINGS - 2
+    for estimate, jammer in fits:
+        if estimate is not None and estimate.present:
+            assert position_error(estimate, jammer) <= 3.0 * np.hypot(estimate.sd_x_m,
+                                                                      estimate.sd_y_m)
+
+
+def test_no_jammer_wins_when_there_is_none(shadowed):
+    """Measured over 20 realisations: 19 no jammer, 1 undecided, none present."""
+    outcomes = []
+    for seed in range(5):
+        rng = np.random.default_rng(100 + seed)
+        scenario = world(shadowed, seed)
+        xy = uniform_points(scenario, rng, 2000)
+        levels, no_jammer = reports(scenario, None, xy, rng)
+        outcomes.append(estimate_jammer(scenario, xy, levels, no_jammer_levels=no_jammer))
+    assert not any(e is not None and e.present for e in outcomes)
+    absent = [e for e in outcomes if e is not None]
+    assert len(absent) >= 3
+    assert all(e.x is None and e.power_w is None and e.log_likelihood_ratio < 4.0
+               for e in absent)
+
+
+def test_none_on_too_few_measurements(shadowed):
+    rng = np.random.default_rng(7)
+    jammer = JammerParams(0.0, 0.0, 1.0, shadowed.jammer.height_m)
+    xy = uniform_points(shadowed, rng, 20)
+    levels, no_jammer = reports(shadowed, jammer, xy, rng)
+    assert estimate_jammer(shadowed, xy, levels, no_jammer_levels=no_jammer) is None
+
+
+def test_none_on_measurements_far_from_the_jammer(shadowed):
+    """Reports from one corner say nothing of a jammer in the opposite one: neither a jammer
+    nor its absence can be claimed."""
+    rng = np.random.default_rng(8)
+    jammer = JammerParams(40.0, 40.0, 1.0, shadowed.jammer.height_m)
+    xy = rng.uniform(-50.0, -20.0, size=(1500, 2))
+    levels, no_jammer = reports(shadowed, jammer, xy, rng)
+    assert estimate_jammer(shadowed, xy, levels, no_jammer_levels=no_jammer) is None
+
+
+def test_rows_without_a_position_are_ignored(shadowed):
+    rng = np.random.default_rng(9)
+    jammer = JammerParams(-20.0, 10.0, 1.0, shadowed.jammer.height_m)
+    xy = uniform_points(shadowed, rng, 1000)
+    levels, no_jammer = reports(shadowed, jammer, xy, rng)
+    padded = np.concatenate([xy, np.full((50, 2), np.nan)])
+    with_gaps = estimate_jammer(shadowed, padded, np.concatenate([levels, np.zeros(50)]),
+                                no_jammer_levels=np.concatenate([no_jammer, np.zeros(50)]))
+    assert with_gaps == estimate_jammer(shadowed, xy, levels, no_jammer_levels=no_jammer)
+
+
+def test_two_thousand_measurements_take_well_under_a_second(shadowed):
+    """Measured on one core: ~0.25-0.3 s (coarse search ~0.15 s, tables ~0.04 s)."""
+    rng = np.random.default_rng(10)
+    jammer = JammerParams(10.0, -20.0, 1.0, shadowed.jammer.height_m)
+    xy = uniform_points(shadowed, rng, 2000)
+    levels, no_jammer = reports(shadowed, jammer, xy, rng)
+    seconds = []
+    for _ in range(3):
+        start = time.perf_counter()
+        estimate_jammer(shadowed, xy, levels, no_jammer_levels=no_jammer)
+        seconds.append(time.perf_counter() - start)
+    assert min(seconds) < 1.0
+
+
+# -- the shadowing's spread and the corrected map -----------------------------------------------
+def test_the_spread_is_learned_from_the_no_jammer_map(scenario, shadowed):
+    xy = uniform_points(scenario, np.random.default_rng(11), 4000)
+    ideal = RadioModel(scenario, shadowed=False)
+    assert fit_shadowing_sigma(ideal, xy, RadioModel(scenario).evaluate(xy).level) < 0.5
+    world_levels = RadioModel(shadowed).evaluate(xy).level
+    assert 2.5 <= fit_shadowing_sigma(ideal, xy, world_levels) <= 5.0
+
+
+def grid_points(scenario: Scenario, spacing: float = 1.0) -> np.ndarray:
+    area = scenario.area
+    xs = np.arange(area.x_min, area.x_max + spacing / 2, spacing)
+    ys = np.arange(area.y_min, area.y_max + spacing / 2, spacing)
+    return np.stack(np.meshgrid(xs, ys), axis=-1)
+
+
+def known(setting, scenario: Scenario, shift_m: float = 0.0, power_factor: float = 1.0):
+    """An estimate of a Table I setting, off by ``shift_m`` in x and ``power_factor``."""
+    return JammerEstimate(True, setting.x + shift_m, setting.y, setting.power_w * power_factor,
+                          None, 1.0, 1.0, 1.0, 1000, 50.0)
+
+
+def test_corrected_map_beats_the_outdated_one_in_the_shadowed_world(shadowed):
+    """Over the whole area, given the world's no-jammer levels. Measured (0.5 m grid):
+    outdated 86.0 / 86.8 / 87.7 / 91.9 %, corrected with the true jammer 88.2 / 89.7 / 90.4 /
+    92.4 %, with one 6 m and 1.6x off within 0.2 points of that. Not 95 %: the jammer link's
+    own shadowing moves the loss by ~0.6 dB, so even the world's exact no-jammer SINR less
+    the ideal loss reaches only 92.5 / 93.3 / 95.1 / 95.5 %. Taking the ideal model's level
+    where it says the jammer matters (min with the map) gives 80.6 / 82.8 / 85.3 / 88.3 %,
+    worse than no correction: the ideal model agrees with this world on 61 % of the area."""
+    truth = RadioModel(shadowed)
+    points = grid_points(shadowed)
+    for setting in TABLE_I_JAMMERS:
+        jammed = truth.evaluate(points, JammerParams(*setting, shadowed.jammer.height_m)).level
+        outdated = np.mean(truth.evaluate(points).level == jammed)
+        for estimate in (known(setting, shadowed), known(setting, shadowed, 6.0, 1.6)):
+            corrected = corrected_levels(shadowed, lambda xy: truth.evaluate(xy).level,
+                                         estimate, points)
+            assert corrected.shape == jammed.shape
+            assert np.mean(corrected == jammed) >= max(outdated + 0.003, 0.87), setting
+
+
+def test_corrected_map_is_exact_in_the_ideal_world(scenario):
+    ideal = RadioModel(scenario)
+    points = grid_points(scenario)
+    for setting in TABLE_I_JAMMERS:
+        jammed = ideal.evaluate(points, JammerParams(*setting, scenario.jammer.height_m)).level
+        corrected = corrected_levels(scenario, lambda xy: ideal.evaluate(xy).level,
+                                     known(setting, scenario), points)
+        assert np.mean(corrected == jammed) >= 0.995
+
+
+def test_without_a_jammer_the_no_jammer_map_stands(scenario):
+    points = grid_points(scenario, 5.0)
+    base = RadioModel(scenario).evaluate(points).level
+    absent = JammerEstimate(False, None, None, None, None, None, None, None, 500, 0.3)
+    corrected = corrected_levels(scenario, lambda xy: RadioModel(scenario).evaluate(xy).level,
+                                 absent, points)
+    np.testing.assert_array_equal(corrected, base)
