@@ -8,12 +8,21 @@ from pathlib import Path
 
 import pytest
 
-from shared.scenario import Scenario, load_scenario
+from shared.scenario import SCENARIO_DIR, Scenario, load_scenario
 
 
 @pytest.fixture(scope="session")
 def scenario() -> Scenario:
     return load_scenario()
+
+
+def write_variant(tmp_path: Path, old: str, new: str, base: str = "icc2021") -> Path:
+    """A copy of a shipped scenario file with ``old`` replaced by ``new`` once."""
+    text = (SCENARIO_DIR / f"{base}.toml").read_text()
+    assert old in text
+    path = tmp_path / "bad.toml"
+    path.write_text(text.replace(old, new, 1))
+    return path
 
 
 def variant(base: Scenario, **sections) -> Scenario:

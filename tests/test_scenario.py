@@ -1,18 +1,9 @@
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
 from shared.scenario import SCENARIO_DIR, ScenarioError, load_scenario
-
-
-def write_variant(tmp_path: Path, old: str, new: str) -> Path:
-    text = (SCENARIO_DIR / "icc2021.toml").read_text()
-    assert old in text
-    path = tmp_path / "bad.toml"
-    path.write_text(text.replace(old, new, 1))
-    return path
+from tests.conftest import write_variant
 
 
 def test_default_scenario_loads_with_paper_values():
@@ -43,10 +34,21 @@ def test_load_by_path_equals_load_by_name():
         ("uav_count = 4", "uav_count = 4\nsquadrons = 2", "missions.squadrons"),
         ("level_edges_db = [-3.0, -2.21]", "level_edges_db = [-2.0, -3.0]", "level_edges_db"),
         ("x = 0.0\ny = 0.0", "x = 80.0\ny = 0.0", "jammer"),
+        ("gbs_sigma_db = 3.0", "gbs_sigma_db = -1.0", "shadowing.gbs_sigma_db"),
+        ("jammer_sigma_db = 3.0", "jammer_sigma_db = -0.5", "shadowing.jammer_sigma_db"),
+        ("decorrelation_m = 10.0", "decorrelation_m = 0", "shadowing.decorrelation_m"),
+        ("field_spacing_m = 1.0", "field_spacing_m = 0.0", "shadowing.field_spacing_m"),
+        ("field_spacing_m = 1.0", "field_spacing_m = 0.01", "shadowing"),
+        ("seed = 1", "seed = -1", "shadowing.seed"),
+        ("measurement_noise_db = 1.0", "measurement_noise_db = -1.0",
+         "uav.measurement_noise_db"),
     ],
 )
 def test_invalid_files_give_one_line_naming_file_and_field(tmp_path, old, new, field):
-    path = write_variant(tmp_path, old, new)
+    # The shadowing cases edit the shadowed world, the only shipped file with those lines.
+    idealized = (SCENARIO_DIR / "icc2021.toml").read_text()
+    path = write_variant(tmp_path, old, new,
+                         "icc2021" if old in idealized else "icc2021-shadowed")
     with pytest.raises(ScenarioError) as caught:
         load_scenario(path)
     message = str(caught.value)

@@ -10,7 +10,7 @@ import pytest
 
 from cloud_service.sinr_mapping import measurements_at
 from shared.radio import JammerParams, RadioModel
-from shared.scenario import SCENARIO_DIR, ScenarioError, load_scenario
+from shared.scenario import load_scenario
 from shared.shadowing import ShadowingField, shadowing_field
 from shared.shipped import SINR_MAP_NO_JAMMER, SINR_MAP_NO_JAMMER_SHADOWED, sinr_map_for
 from tests.conftest import variant
@@ -202,34 +202,3 @@ def test_survey_map_per_scenario():
     assert sinr_map_for("icc2021-shadowed") == SINR_MAP_NO_JAMMER_SHADOWED
     assert sinr_map_for("icc2021") == SINR_MAP_NO_JAMMER
     assert sinr_map_for("some-other-world") == SINR_MAP_NO_JAMMER
-
-
-def write_shadowed_variant(tmp_path, old: str, new: str):
-    text = (SCENARIO_DIR / "icc2021-shadowed.toml").read_text()
-    assert old in text
-    path = tmp_path / "bad.toml"
-    path.write_text(text.replace(old, new, 1))
-    return path
-
-
-@pytest.mark.parametrize(
-    ("old", "new", "field"),
-    [
-        ("gbs_sigma_db = 3.0", "gbs_sigma_db = -1.0", "shadowing.gbs_sigma_db"),
-        ("jammer_sigma_db = 3.0", "jammer_sigma_db = -0.5", "shadowing.jammer_sigma_db"),
-        ("decorrelation_m = 10.0", "decorrelation_m = 0", "shadowing.decorrelation_m"),
-        ("field_spacing_m = 1.0", "field_spacing_m = 0.0", "shadowing.field_spacing_m"),
-        ("field_spacing_m = 1.0", "field_spacing_m = 0.01", "shadowing"),
-        ("seed = 1", "seed = -1", "shadowing.seed"),
-        ("measurement_noise_db = 1.0", "measurement_noise_db = -1.0",
-         "uav.measurement_noise_db"),
-    ],
-)
-def test_bad_shadowing_gives_one_line_naming_file_and_field(tmp_path, old, new, field):
-    path = write_shadowed_variant(tmp_path, old, new)
-    with pytest.raises(ScenarioError) as caught:
-        load_scenario(path)
-    message = str(caught.value)
-    assert "\n" not in message
-    assert str(path) in message
-    assert field in message
