@@ -15,7 +15,7 @@ import numpy as np
 from benchmarks.common import Figure
 from cloud_service.jammer_estimation import estimate_jammer, positions_from_features
 from cloud_service.online_map_sim import Fleet
-from cloud_service.sinr_mapping import OnlineSinrMapper, severe_disagreements
+from cloud_service.sinr_mapping import OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
 from shared.measurements import MeasurementBatch, MeasurementSpec, predict_levels, scenario_features
 from shared.networks import SinrMapNetwork, load_network
@@ -70,8 +70,7 @@ def _mapper(scenario: Scenario, now: list[float], seed: int) -> OnlineSinrMapper
     network, card = load_network(sinr_map_for(scenario.name), {"kind": "sinr_map"})
     memory = SinrMemory(":memory:", MeasurementSpec.of(scenario))
     return OnlineSinrMapper(scenario, memory, network, float(card["accuracy"]),
-                            severe_rate=card.get("severe_rate"), clock=lambda: now[0],
-                            background=False, seed=seed)
+                            clock=lambda: now[0], background=False, seed=seed)
 
 
 def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
@@ -105,15 +104,12 @@ def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
 
 
 def _contradicts(mapper: OnlineSinrMapper, uploads: MeasurementBatch) -> bool:
-    """Whether a report of this step contradicts the survey map across the whole band where
-    the survey map is right without a jammer: the first evidence of the change any detector
-    could have."""
-    scenario = mapper.scenario
-    xy = positions_from_features(scenario, uploads.features)
+    """Whether a report of this step contradicts the survey map where the survey map is right
+    without a jammer: the first evidence of the change any detector could have."""
+    xy = positions_from_features(mapper.scenario, uploads.features)
     survey = predict_levels(mapper.current_network(), uploads.features)
-    quiet = RadioModel(scenario).evaluate(xy).level
-    return bool((severe_disagreements(survey, uploads.levels, scenario.channel.level_count)
-                 & (survey == quiet)).any())
+    quiet = RadioModel(mapper.scenario).evaluate(xy).level
+    return bool(((survey != uploads.levels) & (survey == quiet)).any())
 
 
 def _still_detections(scenario: Scenario, seed: int) -> int:

@@ -82,7 +82,6 @@ class OnlineMaps:
         # No wall-clock budget: a simulated run must not depend on the machine's speed.
         self.mapper = OnlineSinrMapper(
             scenario, self.memory, network, float(card.get("accuracy", 0.99)),
-            severe_rate=card.get("severe_rate"),
             retrain=RetrainConfig(max_seconds=None), clock=lambda: self.now, background=False,
         )
         self._raster_version = -1

@@ -165,7 +165,7 @@ def simulate_online_map(
         "jammer_changes": [{"t": start, "jammer": schedule.label(setting)}
                            for start, setting in zip(schedule.starts, schedule.settings,
                                                      strict=True)],
-        "detector": {"alarm_rate": mapper.detector.alarm_rate,
+        "detector": {"probability_floor": mapper.detector.floor,
                      "threshold": mapper.detector.threshold},
         "t": times,
         "accuracy": accuracies,

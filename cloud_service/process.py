@@ -147,7 +147,7 @@ class CloudService:
         base, _ = load_network(sinr_net, {"kind": "sinr_map", "input_size": spec.feature_size,
                                           "levels": spec.level_count})
         self.mapper = OnlineSinrMapper(self.scenario, self.memory, network, float(accuracy),
-                                       severe_rate=card.get("severe_rate"), base_network=base,
+                                       base_network=base,
                                        publish=self._on_retrained, retrain=retrain,
                                        version=version)
         data = path.read_bytes()

@@ -2,8 +2,8 @@
 
 - ``train_sinr_map``: supervised training of the SINR-mapping network on measurements
   (mini-batches of 200, Adam lr 5e-3, L2 1e-4: the paper's values).
-- ``ChangeDetector``: the rule that declares a jammer change from the map's severe
-  disagreements with each UAV's uploads.
+- ``ChangeDetector``: the rule that declares a jammer change when one UAV's uploads keep
+  contradicting the map.
 - ``OnlineSinrMapper``: memory + detector + jammer estimate + DNN refits + publication, with
   no transport of its own, so the bus shell around it stays thin.
 - ``simulated_measurements``: measurements as a UAV's receiver reports them (the world's
@@ -22,7 +22,6 @@ uniform measurements: ~89-92 % with K_n = 4, ~96-97 % with 8, ~98 % with 12.
 from __future__ import annotations
 
 import copy
-import math
 import threading
 import time as wall
 from collections import deque
@@ -41,7 +40,12 @@ from cloud_service.jammer_estimation import (
     positions_from_features,
 )
 from cloud_service.sinr_memory import SinrMemory, Uploads
-from shared.measurements import MeasurementBatch, predict_levels, scenario_features
+from shared.measurements import (
+    MeasurementBatch,
+    predict_levels,
+    predict_probabilities,
+    scenario_features,
+)
 from shared.networks import SinrMapNetwork, sha256, to_bytes
 from shared.policy import MAP_SPACING_M, LevelRaster, sinr_network_raster
 from shared.radio import JammerParams, RadioModel
@@ -232,11 +236,6 @@ def fit_sinr_map(
         "samples": samples,
         "steps": result.steps,
         "accuracy": accuracy_of(result.network, fresh.features, fresh.levels),
-        # The change detector's baseline: how often this map and a report disagree across
-        # the whole marginal band with nothing changed (ChangeDetector).
-        "severe_rate": float(severe_disagreements(
-            predict_levels(result.network, fresh.features), fresh.levels,
-            scenario.channel.level_count).mean()),
         # Reports carry the receivers' noise, which caps any map's score on them; this is the
         # map's score on the world itself.
         "accuracy_on_true_levels": accuracy_of(result.network, fresh.features,
@@ -254,16 +253,6 @@ def accuracy_of(network: SinrMapNetwork, features, levels) -> float:
 
 
 # -- change detection ---------------------------------------------------------------------------
-def severe_disagreements(predicted: np.ndarray, measured: np.ndarray,
-                         level_count: int) -> np.ndarray:
-    """Where the map and a UAV disagree across the whole marginal band: one says disconnected,
-    the other connected at the top level. Receiver noise and a blurred boundary move a report
-    to the neighbouring level; a jammer that appeared, moved or left moves it across."""
-    low = np.minimum(predicted, measured)
-    high = np.maximum(predicted, measured)
-    return (low == 0) & (high == level_count - 1)
-
-
 class DetectorCheck(NamedTuple):
     t: float  # time of the last measurement fed
     source: str  # the UAV whose statistic is the highest
@@ -273,60 +262,60 @@ class DetectorCheck(NamedTuple):
 
 @dataclass
 class ChangeDetector:
-    """Declares a jammer change from the map's severe disagreements with each UAV's uploads.
+    """Declares a jammer change when one UAV's reports keep contradicting the map.
 
-    Rule, a Bernoulli CUSUM per UAV: for each upload, in the order taken, the UAV's statistic
-    S <- max(0, S + log(q/p)) after a severe disagreement (``severe_disagreements``) and
-    S <- max(0, S + log((1-q)/(1-p))) otherwise, with p the map's own severe rate on
-    measurements like the uploads (``baseline_rate``, at least ``min_rate``) and q the rate
-    inside a jammed zone the map does not know (``alarm_rate``). A change is declared when
-    one UAV's S reaches ``threshold``; the time its excursion began (S last at 0) is the
-    estimate of when the change happened.
+    Rule, a CUSUM per UAV over its reports in the order taken: S <- max(0, S + log(u / p)),
+    with p the map's own probability of the reported level (its softmax; at least ``floor``)
+    and u = 1 / levels, the probability a map that knows nothing would give. A report the
+    map expected (p > u) pulls S down; one it ruled out pushes it up. A change is declared
+    when one UAV's S reaches ``threshold``; the time its excursion began (S last at 0) is
+    the estimate of when the change happened.
 
-    Why per UAV: a jammed zone is local. With four UAVs only one may cross it, and in pooled
-    windows its reports would be diluted by the others'. A UAV that flies into the zone
-    reports severe disagreements at almost every sample, so ``threshold`` is reached within
-    a few metres of flight, while the disagreements of a still jammer (a boundary the map
-    has a little off) come in short runs that the downward drift erases. After firing, the
-    detector is disarmed until ``reset`` hands it the next map's baseline.
+    Why per UAV: a jammed zone is local. With four UAVs only one may cross it, and pooled
+    its reports would be diluted by the others'. Why the map's probabilities: where the map
+    is unsure (a cell edge, a patch of shadowing it could not learn) a contradiction is weak
+    evidence, and where it is sure it is strong. The map's errors are not independent from
+    one report to the next (reports lie 0.25 m apart, shadowing decorrelates over 10 m), so
+    the threshold must outlast the runs of contradictions a still jammer produces: it is a
+    scenario value (``online_map.change_threshold``, measured there). After firing, the
+    detector is disarmed until ``reset``.
     """
 
-    baseline_rate: float
-    alarm_rate: float = 0.5
-    threshold: float = 16.0
-    min_rate: float = 0.01
+    levels: int
+    threshold: float
+    floor: float
     armed: bool = True
     change_start: float | None = None
     _statistic: dict[str, float] = field(default_factory=dict, repr=False)
     _excursion_start: dict[str, float] = field(default_factory=dict, repr=False)
 
-    def reset(self, baseline_rate: float) -> None:
-        """A new map is in service: new baseline, statistics cleared, detector armed."""
-        self.baseline_rate = baseline_rate
+    @classmethod
+    def of(cls, scenario: Scenario) -> ChangeDetector:
+        online = scenario.online_map
+        return cls(scenario.channel.level_count, online.change_threshold,
+                   online.probability_floor)
+
+    def reset(self) -> None:
+        """A new map is in service: statistics cleared, detector armed."""
         self.armed = True
         self.change_start = None
         self._statistic.clear()
         self._excursion_start.clear()
 
-    def _steps(self) -> tuple[float, float]:
-        baseline = min(max(self.baseline_rate, self.min_rate), 0.5 * self.alarm_rate)
-        return (math.log(self.alarm_rate / baseline),
-                math.log((1.0 - self.alarm_rate) / (1.0 - baseline)))
-
-    def update(self, severe: np.ndarray, sources: list[str],
+    def update(self, probability: np.ndarray, sources: list[str],
                times: np.ndarray) -> DetectorCheck | None:
-        """Feed the new uploads (whether each disagrees severely, who took it, when); returns
-        the state after them (``fired`` set when a change is declared), None when disarmed
-        or given nothing."""
-        if not self.armed or len(severe) == 0:
+        """Feed the new uploads (the map's probability of each reported level, who took it,
+        when); returns the state after them (``fired`` set when a change is declared), None
+        when disarmed or given nothing."""
+        if not self.armed or len(probability) == 0:
             return None
-        up, down = self._steps()
-        for flag, source, t in zip(np.asarray(severe).tolist(), sources,
-                                   np.asarray(times).tolist(), strict=True):
+        evidence = np.log(1.0 / self.levels) - np.log(np.maximum(probability, self.floor))
+        for step, source, t in zip(evidence.tolist(), sources, np.asarray(times).tolist(),
+                                   strict=True):
             statistic = self._statistic.get(source, 0.0)
             if statistic == 0.0:
                 self._excursion_start[source] = t
-            statistic = max(0.0, statistic + (up if flag else down))
+            statistic = max(0.0, statistic + step)
             self._statistic[source] = statistic
             if statistic >= self.threshold:
                 self.armed = False
@@ -350,9 +339,13 @@ class RetrainConfig:
     """How the mapper answers a detected change (values measured: bench_adaptation.py)."""
 
     # Post-change measurements before the first estimate of the jammer is tried, and between
-    # tries while none converges (four UAVs upload about 40 a second).
+    # tries while none converges (four UAVs upload about 40 a second): at least
+    # ``estimate_every`` more, and ``estimate_growth`` times as many as at the last try, so
+    # that a jammer the data cannot place (a fit costs 0.1-0.9 s) is tried ~20 times up to
+    # ``min_samples``, not at every upload.
     estimate_from: int = 40
     estimate_every: int = 40
+    estimate_growth: float = 1.25
     # The corrected map is refined (estimate and DNN again, on all post-change data) every
     # ``refine_every`` post-change measurements until ``settle_after``; then the map stands
     # and the detector watches it. Measured with 20 UAVs after a Table I change: settling at
@@ -386,10 +379,8 @@ RECENT_KEPT = 500  # uploads over which the map in service is scored for status
 class OnlineSinrMapper:
     """The cloud's online SINR map: ingest uploads, watch the map, adapt it on a change.
 
-    ``ingest`` stores a batch in the memory D_w and feeds the detector the map's severe
-    disagreements with it (baseline: ``severe_rate``, the map's own rate on fresh reports as
-    its card states it; at worst one minus its ``accuracy``). Once a change is declared (its
-    start estimated by the detector):
+    ``ingest`` stores a batch in the memory D_w and feeds the detector how probable the map
+    found each report. Once a change is declared (its start estimated by the detector):
     1. from ``retrain.estimate_from`` post-change measurements on, the jammer is estimated
        from them (position, power, uncertainty; ``jammer_estimation``); an estimate that
        does not converge is never published and is tried again with more data;
@@ -413,7 +404,6 @@ class OnlineSinrMapper:
         network: SinrMapNetwork,
         accuracy: float,
         *,
-        severe_rate: float | None = None,
         base_network: SinrMapNetwork | None = None,
         publish: Callable[[PublishedWeights], None] | None = None,
         detector: ChangeDetector | None = None,
@@ -427,9 +417,8 @@ class OnlineSinrMapper:
         self.memory = memory
         self.publish = publish
         self.level_count = scenario.channel.level_count
-        baseline = 1.0 - accuracy if severe_rate is None else severe_rate
-        self.detector = detector or ChangeDetector(baseline_rate=baseline)
-        self.detector.reset(baseline)
+        self.detector = detector or ChangeDetector.of(scenario)
+        self.detector.reset()
         self.retrain = retrain or RetrainConfig()
         self.clock = clock
         self.background = background
@@ -482,11 +471,11 @@ class OnlineSinrMapper:
         check = None
         with self._lock:
             if len(stored):
-                predicted = predict_levels(self._network, stored.features)
-                self._recent.extend((predicted == stored.levels).tolist())
+                probabilities = predict_probabilities(self._network, stored.features)
+                self._recent.extend((probabilities.argmax(-1) == stored.levels).tolist())
                 if self._change is None:
                     check = self.detector.update(
-                        severe_disagreements(predicted, stored.levels, self.level_count),
+                        np.take_along_axis(probabilities, stored.levels[:, None], -1)[:, 0],
                         stored.sources, stored.times)
                     if check is not None and check.fired:
                         self._on_change(check)
@@ -520,12 +509,12 @@ class OnlineSinrMapper:
             elif job == "fit":
                 self._fit(change, data, change.estimate)
             else:  # "settle": the map stands, the detector watches it
-                self._settle(change, data)
+                self._settle(change)
         except Exception as exc:  # a failed adaptation must not leave the mapper stuck
             with self._lock:
                 self.events.append({"type": "retrain_failed", "t": self.clock(),
                                     "version": self._version, "error": repr(exc)})
-                self._settle_locked(self.detector.baseline_rate)
+                self._settle_locked()
         finally:
             with self._lock:
                 self._busy = False
@@ -584,18 +573,16 @@ class OnlineSinrMapper:
         if self.publish is not None:
             self.publish(published)
         if estimate is None:  # the paper's path: one retraining per change
-            self._settle(change, data)
+            self._settle(change)
 
-    def _settle(self, change: _Change, data: MeasurementBatch) -> None:
-        predicted = predict_levels(self._network, data.features)
-        rate = float(severe_disagreements(predicted, data.levels, self.level_count).mean())
+    def _settle(self, change: _Change) -> None:
         with self._lock:
             if self._change is change:
-                self._settle_locked(rate)
+                self._settle_locked()
 
-    def _settle_locked(self, baseline_rate: float) -> None:
+    def _settle_locked(self) -> None:
         self._change = None
-        self.detector.reset(baseline_rate)
+        self.detector.reset()
 
     def _base_levels(self, xy: np.ndarray) -> np.ndarray:
         return predict_levels(self._base, scenario_features(self.scenario, xy))
@@ -636,7 +623,8 @@ class _Change:
         if self.estimate is None:
             if n >= config.min_samples:
                 return "fit"
-            if n >= config.estimate_from and n - self.tried_at >= config.estimate_every:
+            if n >= max(config.estimate_from, self.tried_at + config.estimate_every,
+                        config.estimate_growth * self.tried_at):
                 return "estimate"
             return None
         if n >= config.settle_after and n - self.fitted_at < config.refine_every:

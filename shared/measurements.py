@@ -263,16 +263,24 @@ class SpotFilter:
 _PREDICT_CHUNK = 65_536
 
 
-def predict_levels(network: torch.nn.Module, features: np.ndarray | torch.Tensor) -> np.ndarray:
-    """Predicted level (argmax of the logits) for features of shape (..., F)."""
+def predict_probabilities(network: torch.nn.Module,
+                          features: np.ndarray | torch.Tensor) -> np.ndarray:
+    """Probability of each level (softmax of the logits) for features of shape (..., F):
+    shape (..., levels)."""
     flat = torch.as_tensor(np.asarray(features, dtype=np.float32))
     shape = flat.shape[:-1]
     flat = flat.reshape(-1, flat.shape[-1])
-    out = np.empty(flat.shape[0], dtype=np.int64)
+    out = []
     # No mode switch: the network has no dropout or batch norm, and the one in service may be
     # read by several threads at once.
     with torch.inference_mode():
         for start in range(0, flat.shape[0], _PREDICT_CHUNK):
-            block = flat[start : start + _PREDICT_CHUNK]
-            out[start : start + len(block)] = network(block).argmax(-1).numpy()
-    return out.reshape(shape)
+            out.append(torch.softmax(network(flat[start : start + _PREDICT_CHUNK]), -1).numpy())
+    levels = network.levels
+    return (np.concatenate(out) if out else np.zeros((0, levels), np.float32)).reshape(
+        *shape, levels)
+
+
+def predict_levels(network: torch.nn.Module, features: np.ndarray | torch.Tensor) -> np.ndarray:
+    """Predicted level (the most probable) for features of shape (..., F)."""
+    return predict_probabilities(network, features).argmax(-1).astype(np.int64)

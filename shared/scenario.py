@@ -173,6 +173,13 @@ class Training(_Strict):
     jammer_absent_probability: Annotated[float, Field(ge=0, le=1)]
 
 
+class OnlineMap(_Strict):
+    """The cloud's change detector (``cloud_service.sinr_mapping.ChangeDetector``)."""
+
+    change_threshold: Positive  # nats of evidence one UAV's reports must pile up
+    probability_floor: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)]
+
+
 class Scenario(_Strict):
     name: str
     area: Area
@@ -185,6 +192,7 @@ class Scenario(_Strict):
     missions: Missions
     policy: Policy
     training: Training
+    online_map: OnlineMap
     shadowing: Shadowing | None = None
 
     @model_validator(mode="after")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cloud_service.evaluation import swapping_jammers, transient_episodes
-from cloud_service.sinr_mapping import ChangeDetector, severe_disagreements
+from cloud_service.sinr_mapping import ChangeDetector
 from shared.measurements import SpotFilter
 from shared.messages import (
     JammerEstimate,
@@ -23,6 +23,7 @@ from shared.messages import (
     zenoh_cli_decoder,
 )
 from shared.paper import JammerSetting
+from shared.scenario import load_scenario
 from shared.topics import Topics
 from tests.conftest import variant
 from world_sim.core import VectorWorld, episode_seed
@@ -66,37 +67,35 @@ def test_the_world_reports_along_the_path_with_seeded_noise(scenario):
 
 
 # -- the detector -----------------------------------------------------------------------------
-def test_severe_disagreement_crosses_the_whole_band():
-    predicted = np.array([0, 0, 0, 1, 1, 2, 2, 2])
-    measured = np.array([0, 1, 2, 0, 2, 0, 1, 2])
-    np.testing.assert_array_equal(severe_disagreements(predicted, measured, 3),
-                                  [0, 0, 1, 0, 0, 1, 0, 0])
-
-
-def test_detector_fires_on_one_uavs_run_not_on_scattered_disagreements():
-    detector = ChangeDetector(baseline_rate=0.02, alarm_rate=0.5, threshold=16.0)
-    up, down = math.log(0.5 / 0.02), math.log(0.5 / 0.98)
-    # Scattered: one severe disagreement in twenty per UAV never adds up.
-    scattered = np.tile([True] + [False] * 19, 50)
-    sources = [f"uav-{i // 20 % 4}" for i in range(scattered.size)]
-    check = detector.update(scattered, sources, np.arange(scattered.size, dtype=float))
-    assert not check.fired and detector.armed and check.statistic < up
-    # A run by one UAV: fires once its sum reaches the threshold, i.e. after
-    # ceil(16 / up) = 5 severe reports in a row (the others' reports do not dilute it).
-    detector.reset(0.02)
-    severe = np.array([False, True, True, False, True, True, True, True, True])
+def test_detector_fires_on_one_uavs_run_of_contradictions_not_on_scattered_ones():
+    detector = ChangeDetector(levels=3, threshold=12.0, floor=0.05)
+    up, down = math.log((1 / 3) / 0.05), math.log((1 / 3) / 0.9)
+    # Scattered: one report in twenty that the map ruled out (p = 0.01, counted as the floor)
+    # among reports it expected (p = 0.9) never adds up, for any UAV.
+    probability = np.tile([0.01] + [0.9] * 19, 40)
+    sources = [f"uav-{i // 20 % 4}" for i in range(probability.size)]
+    check = detector.update(probability, sources, np.arange(probability.size, dtype=float))
+    assert not check.fired and detector.armed and check.statistic <= up
+    # A run by one UAV fires once its sum reaches 12, i.e. on its seventh contradiction
+    # (6 * 1.90 = 11.4), whatever the other UAVs report in between.
+    detector.reset()
+    probability = np.array([0.9, 0.01, 0.01, 0.9, 0.01, 0.01, 0.01, 0.01, 0.01, 0.01])
     run_sources = ["uav-2", "uav-1", "uav-1", "uav-3", "uav-1", "uav-1", "uav-1", "uav-1",
-                   "uav-1"]
-    check = detector.update(severe, run_sources, np.arange(10.0, 19.0))
+                   "uav-1", "uav-1"]
+    check = detector.update(probability, run_sources, np.arange(10.0, 20.0))
     assert check.fired and check.source == "uav-1" and not detector.armed
-    assert check.t == 16.0  # the fifth severe report of uav-1
-    assert check.statistic == pytest.approx(5 * up)
+    assert check.t == 18.0 and check.statistic == pytest.approx(7 * up)
     assert detector.change_start == 11.0  # where uav-1's excursion began
-    assert detector.update(severe, run_sources, np.arange(9.0)) is None  # disarmed
-    # The downward step: a correct report takes log((1-q)/(1-p)) off.
-    detector.reset(0.02)
-    check = detector.update(np.array([True, False]), ["a", "a"], np.zeros(2))
+    assert detector.update(probability, run_sources, np.arange(10.0)) is None  # disarmed
+    # An expected report takes log(u / p) off; an unsure map (p = 1/3) neither adds nor takes.
+    detector.reset()
+    check = detector.update(np.array([0.01, 0.9, 1 / 3]), ["a", "a", "a"], np.zeros(3))
     assert check.statistic == pytest.approx(up + down)
+
+
+def test_the_scenario_sets_the_detector(scenario):
+    assert ChangeDetector.of(scenario) == ChangeDetector(3, 12.0, 0.05)
+    assert ChangeDetector.of(load_scenario("icc2021-shadowed")).threshold == 24.0
 
 
 # -- the estimate on the wire -----------------------------------------------------------------
