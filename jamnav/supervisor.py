@@ -527,14 +527,40 @@ def summary_table(report: dict[str, Any]) -> str:
                 f"{earlier}, "
                 f"{m['buffered']} still buffered, {m['overflowed']} dropped from full outboxes, "
                 f"{m['upload_failures']} uploads retried")
-    for event in report["events"]:
-        if event["type"] in ("jammer_changed", "change_detected", "sinr_weights_published"):
-            extra = {k: event[k] for k in ("version", "accuracy", "jammer") if k in event}
-            rows.append(f"  {event['type']:<23} {json.dumps(extra)}")
-        elif event["type"] == "jammer_estimated":
-            rows.append(f"  {event['type']:<23} "
-                        f"{describe_estimate(JammerEstimate(**event['estimate']))}")
+    rows += [f"  {line}" for line in map_history(report["events"])]
     return "\n".join(rows)
+
+
+def map_history(events: list[dict[str, Any]]) -> list[str]:
+    """The jammer's changes and the cloud's answers, one line each; a run of refinements
+    (new estimate and map, again and again) shows as its first and last line."""
+    lines: list[str] = []
+    refinements: list[str] = []
+
+    def close_run() -> None:
+        if len(refinements) > 2:
+            lines.append(f"{'':<23} ... {len(refinements) - 2} refinements ...")
+        if len(refinements) > 1:
+            lines.append(refinements[-1])
+        refinements.clear()
+
+    for event in events:
+        kind = event["type"]
+        if kind == "jammer_estimated":
+            estimate = JammerEstimate(**event["estimate"])
+            line = (f"{'map v' + str(estimate.map_version) + ', jammer at':<23} "
+                    f"{describe_estimate(estimate)}")
+            if not refinements:
+                lines.append(line)
+            refinements.append(line)
+        elif kind in ("jammer_changed", "change_detected"):
+            close_run()
+            extra = {k: event[k] for k in ("version", "accuracy", "jammer") if k in event}
+            lines.append(f"{kind:<23} {json.dumps(extra)}")
+        elif kind == "sinr_weights_published" and not refinements:
+            lines.append(f"{kind:<23} {json.dumps({'version': event['version']})}")
+    close_run()
+    return lines
 
 
 def save_trajectory_figures(report: dict[str, Any], supervisor: Supervisor) -> list[str]:

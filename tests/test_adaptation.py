@@ -159,3 +159,24 @@ def test_transient_runs_from_each_change_to_the_first_newer_map():
     # No jammer at the start: the no-jammer map is right, nothing is transient.
     np.testing.assert_array_equal(transient_episodes(lambda k: None, np.zeros(4, int)),
                                   [0, 0, 0, 0])
+
+
+def test_the_report_shows_a_run_of_refinements_as_its_first_and_last_map():
+    from jamnav.supervisor import map_history
+
+    def estimated(version: int, x: float) -> dict:
+        return {"type": "jammer_estimated", "estimate": _estimate(map_version=version, x=x)
+                .model_dump()}
+
+    published = [{"type": "sinr_weights_published", "version": v} for v in range(1, 5)]
+    events = [{"type": "jammer_changed", "jammer": None}, {"type": "change_detected",
+                                                            "version": 0, "accuracy": 0.8}]
+    for version, x in ((1, 20.0), (2, 22.0), (3, 23.5), (4, 24.0)):
+        events += [estimated(version, x), published[version - 1]]
+    lines = map_history(events)
+    assert len(lines) == 5 and lines[0].startswith("jammer_changed")
+    assert lines[2].startswith("map v1, jammer at") and "(20.0 +- 1.5" in lines[2]
+    assert "2 refinements" in lines[3] and lines[4].startswith("map v4") and "(24.0" in lines[4]
+    # A map published without an estimate (the DNN alone) is listed as such.
+    assert map_history([{"type": "sinr_weights_published", "version": 7}]) == [
+        'sinr_weights_published  {"version": 7}']
