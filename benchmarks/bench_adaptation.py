@@ -10,14 +10,22 @@ time, so every figure is seconds of flight after the change, the same on any mac
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from benchmarks.common import Figure
 from cloud_service.jammer_estimation import estimate_jammer, positions_from_features
 from cloud_service.online_map_sim import Fleet
-from cloud_service.sinr_mapping import OnlineSinrMapper
+from cloud_service.sinr_mapping import ChangeDetector, OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
-from shared.measurements import MeasurementBatch, MeasurementSpec, predict_levels, scenario_features
+from shared.measurements import (
+    MeasurementBatch,
+    MeasurementSpec,
+    predict_levels,
+    predict_probabilities,
+    scenario_features,
+)
 from shared.networks import SinrMapNetwork, load_network
 from shared.paper import JammerSetting, jammer_params
 from shared.radio import RadioModel
@@ -125,6 +133,34 @@ def _still_detections(scenario: Scenario, seed: int) -> int:
     return sum(e["type"] == "change_detected" for e in mapper.events)
 
 
+THRESHOLDS = (8.0, 12.0, 16.0, 24.0)  # the detector thresholds the scenarios chose between
+
+
+def _false_alarms_by_threshold(scenario: Scenario, seed: int) -> dict[float, int]:
+    """Detections the survey map would raise over STILL_S of flight with no jammer, for each
+    of THRESHOLDS (the detector alone, reset after each): the figures the scenarios'
+    ``online_map.change_threshold`` comments quote."""
+    network, _ = load_network(sinr_map_for(scenario.name), {"kind": "sinr_map"})
+    fleet = Fleet(scenario, UAVS, np.random.default_rng(seed))
+    batches = []
+    for step in range(int(STILL_S / scenario.timing.step_s)):
+        fleet.fly()
+        uploads = fleet.uploads(None, float(step), step)
+        probability = predict_probabilities(network, uploads.features)
+        batches.append((probability[np.arange(len(uploads)), uploads.levels], uploads.sources,
+                        uploads.times))
+    counts = {}
+    for threshold in THRESHOLDS:
+        detector = dataclasses.replace(ChangeDetector.of(scenario), threshold=threshold)
+        counts[threshold] = 0
+        for batch in batches:
+            check = detector.update(*batch)
+            if check is not None and check.fired:
+                counts[threshold] += 1
+                detector.reset()
+    return counts
+
+
 def _percentiles(values: list[float | None]) -> tuple[float, float]:
     """Median and 90th percentile; a change never handled counts as infinitely late."""
     data = np.array([np.inf if v is None else v for v in values])
@@ -169,6 +205,10 @@ def adaptation_figures(scenario: Scenario) -> list[Figure]:
                lower_is_better=True),
         Figure(f"{scenario.name}: false detections, {UAVS} UAVs, {STILL_S / 60:.0f} min still",
                _still_detections(scenario, 7), "count", 0, lower_is_better=True),
+    ] + [
+        Figure(f"{scenario.name}: same, detector alone at threshold {threshold:g}", count,
+               "count")
+        for threshold, count in _false_alarms_by_threshold(scenario, 7).items()
     ]
 
 
