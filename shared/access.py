@@ -194,7 +194,7 @@ def grants(topics: Topics, role: str) -> dict[str, list[str]]:
         return {"publish": [*weights, topics.jammer_estimate,
                             *_events(topics, ChangeDetected, JammerEstimated,
                                      SinrWeightsPublished, RetrainFailed)],
-                "see_subscribers": weights,
+                "see_subscribers": [*weights, topics.jammer_estimate],
                 "subscribe": _events(topics, JammerChanged),
                 "serve": [*desks, topics.status(CLOUD, 0)],
                 "be_asked": [*desks, every_status],

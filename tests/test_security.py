@@ -166,6 +166,20 @@ def test_only_the_world_publishes_state_and_only_the_cloud_weights(secure_bus):
     assert b"forged" not in state.payloads() and b"forged" not in weights.payloads()
 
 
+def test_only_the_cloud_publishes_the_jammer_estimate_and_the_operator_sees_it(secure_bus):
+    _, _, s = secure_bus
+    topics = Topics()
+    estimates = Inbox()
+    s["operator"].declare_subscriber(topics.jammer_estimate, estimates)
+    cloud_pub = bus.reliable_publisher(s["cloud"], topics.jammer_estimate)
+    delivered(cloud_pub.put, estimates, b"estimate")
+    for role in ("world", "agent-0"):
+        s[role].put(topics.jammer_estimate, b"forged")
+    delivered(cloud_pub.put, estimates, b"later estimate")
+    time.sleep(GRACE_S)
+    assert b"forged" not in estimates.payloads()
+
+
 def test_only_the_operator_controls_the_jammer_and_it_sees_every_status(secure_bus):
     _, _, s = secure_bus
     topics = Topics()
