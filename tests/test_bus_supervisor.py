@@ -119,12 +119,15 @@ def _reports_in(path: Path, scenario) -> list[tuple]:
 
 def test_agents_measure_and_upload_what_the_in_process_evaluation_uploads(supervisor,
                                                                          scenario, tmp_path):
-    """One measurement model: same seed, no jammer (so the map stays the survey map in both
-    and the flights agree step for step), then the same outcomes and the very same reports
-    in the cloud's memory, noise and de-duplication included."""
+    """One measurement model: same seed, no jammer and a detector that never fires (so the
+    map stays the survey map in both and the flights agree step for step; the idealized
+    survey map never met receiver noise and would take it for a change), then the same
+    outcomes and the very same reports in the cloud's memory, noise and de-duplication
+    included."""
     noisy = tmp_path / "noisy.toml"
     noisy.write_text(Path(resolve_scenario_path("icc2021")).read_text().replace(
-        "measurement_noise_db = 0.0", "measurement_noise_db = 1.0"))
+        "measurement_noise_db = 0.0", "measurement_noise_db = 1.0").replace(
+        "change_threshold = 12.0", "change_threshold = 1e9"))
     process = supervisor("--uavs", "3", "--episodes", "2", "--lockstep", "--map", "online",
                          "--no-jammer", "--seed", "8", "--no-figures", "--scenario", str(noisy),
                          "--endpoint", free_endpoint(), "--run-dir", str(tmp_path / "run"))
