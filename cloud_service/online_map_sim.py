@@ -37,7 +37,7 @@ from shared.paper import TABLE_I_JAMMERS, JammerSetting, jammer_params
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 
-DEFAULT_UAVS = 100  # uploads per step: a window of 200 is two steps of the whole fleet
+DEFAULT_UAVS = 20  # ~200 reports a step: a busy sky, without making the figure a long run
 
 
 class Fleet:

@@ -483,7 +483,12 @@ def cmd_fit_sinr(args: argparse.Namespace) -> int:
 
 
 def cmd_online_map(args: argparse.Namespace) -> int:
-    from cloud_service.online_map_sim import Schedule, save_online_map_figure, simulate_online_map
+    from cloud_service.online_map_sim import (
+        DEFAULT_UAVS,
+        Schedule,
+        save_online_map_figure,
+        simulate_online_map,
+    )
 
     _one_torch_thread()
     scenario = _load_scenario(args)
@@ -491,7 +496,8 @@ def cmd_online_map(args: argparse.Namespace) -> int:
     if out.suffix.lower() != ".png":
         raise UsageError(f"--out {args.out}: the figure is written as PNG; name it *.png")
     output_path("--out", args.out, beside=(".json",))  # the timeline goes beside the figure
-    check_range("--uavs", args.uavs, 1, 10_000)
+    uavs = DEFAULT_UAVS if args.uavs is None else args.uavs
+    check_range("--uavs", uavs, 1, 10_000)
     check_range("--period", args.period, 0, above=True)
     check_range("--seed", args.seed, 0, SEED_MAX)
     network, card = _load_sinr_map(args.model, scenario)
@@ -499,7 +505,7 @@ def cmd_online_map(args: argparse.Namespace) -> int:
         raise UsageError(f"--model {args.model}: its card states no accuracy")
     schedule = Schedule.table_i(first_change=args.period / 2, period=args.period)
     timeline = simulate_online_map(scenario, network, float(card["accuracy"]), schedule,
-                                   schedule.starts[-1] + args.period, uavs=args.uavs,
+                                   schedule.starts[-1] + args.period, uavs=uavs,
                                    seed=args.seed)
     save_online_map_figure(timeline, out)
     published = [e for e in timeline["events"] if e["type"] == "sinr_weights_published"]
@@ -618,7 +624,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scenario(online)
     online.add_argument("--model", default=str(SINR_MAP_NO_JAMMER), metavar="PATH",
                         help="the initial map (default: models/sinr_map_no_jammer.safetensors)")
-    online.add_argument("--uavs", type=int, default=100, help="UAVs uploading every step")
+    online.add_argument("--uavs", type=int, default=None,
+                        help="UAVs reporting along their paths (default 20)")
     online.add_argument("--period", type=float, default=120.0,
                         help="simulated seconds per jammer setting")
     online.add_argument("--seed", type=int, default=0)
