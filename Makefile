@@ -24,8 +24,7 @@ $(STAMP): pyproject.toml | $(BIN)/python
 # the jammer swapped live through the control topic midway, then a summary and figures.
 demo: install
 	$(BIN)/jamnav up --uavs 4 --realtime --rate 100 --duration 60 --swap-jammer-at 30 \
-		--swap-to 25,-10,1 --retrain-samples 2000 --model models/value_net_extended.safetensors \
-		--run-dir results/demo/up
+		--swap-to 25,-10,1 --retrain-samples 2000 --run-dir results/demo/up
 
 test: install
 	$(BIN)/python -m pytest

@@ -55,7 +55,14 @@ from shared.messages import (
 from shared.networks import WeightsError, load_network, sha256
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario
-from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET, sinr_map_for
+from shared.shipped import (
+    DEFAULT_VALUE_NET,
+    EXTENDED_VALUE_NET,
+    SINR_MAP_NO_JAMMER,
+    VALUE_NET_HELP,
+    sinr_map_for,
+    value_net_path,
+)
 from shared.topics import Topics, add_bus_arguments, endpoint_from
 
 ROLE = "cloud"
@@ -88,7 +95,7 @@ def latest_saved(directory: Path) -> Path | None:
 
 class CloudService:
     def __init__(self, session, topics: Topics, scenario: Scenario, mode: MapMode,
-                 run_dir: Path, log: logging.Logger, *, value_net: Path = VALUE_NET,
+                 run_dir: Path, log: logging.Logger, *, value_net: Path = EXTENDED_VALUE_NET,
                  sinr_net: Path = SINR_MAP_NO_JAMMER, jammer: JammerInfo | None = None,
                  retrain: RetrainConfig | None = None):
         self.session, self.topics, self.scenario, self.mode, self.log = (
@@ -309,7 +316,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--map", choices=("online", "perfect", "outdated"), default="online")
     parser.add_argument("--run-dir", default="runs/cloud", metavar="DIR",
                         help="replay memory and published SINR maps")
-    parser.add_argument("--value-net", default=str(VALUE_NET), metavar="PATH")
+    parser.add_argument("--value-net", default=DEFAULT_VALUE_NET, metavar="NAME|PATH",
+                        help=VALUE_NET_HELP)
     parser.add_argument("--sinr-net", default=None, metavar="PATH",
                         help="the survey's no-jammer SINR map (online; default: the shipped "
                              "one of the scenario)")
@@ -352,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
     with session:
         try:
             cloud = CloudService(session, topics, scenario, args.map, Path(args.run_dir), log,
-                                 value_net=Path(args.value_net),
+                                 value_net=value_net_path(args.value_net),
                                  sinr_net=Path(args.sinr_net or sinr_map_for(scenario.name)),
                                  jammer=jammer, retrain=retrain)
         except (WeightsError, ValueError) as exc:

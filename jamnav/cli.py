@@ -20,7 +20,13 @@ from jamnav.arguments import SEED_MAX, UsageError, check_range, output_path
 from jamnav.cli_runtime import register as register_runtime
 from shared.radio import RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario, resolve_scenario_path
-from shared.shipped import EXTENDED_VALUE_NET, SINR_MAP_NO_JAMMER, VALUE_NET
+from shared.shipped import (
+    DEFAULT_VALUE_NET,
+    SINR_MAP_NO_JAMMER,
+    VALUE_NET,
+    VALUE_NET_HELP,
+    value_net_path,
+)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -248,7 +254,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     try:
         report = evaluate(scenario, args.method, args.episodes, args.seed, setting, args.uavs,
-                          Path(args.model), args.sinr_map and Path(args.sinr_map), on_episode,
+                          value_net_path(args.model), args.sinr_map and Path(args.sinr_map),
+                          on_episode,
                           args.swap_every)
     except EvaluationError as exc:
         raise UsageError(f"eval: {exc}") from None
@@ -279,7 +286,7 @@ def cmd_table(args: argparse.Namespace) -> int:
     out = output_path("--out", args.out, directory=True)
     torch.set_num_threads(1)
     scenario = _load_scenario(args)
-    nets = {"paper": Path(args.model), "extended": Path(args.extended_model)}
+    nets = {"paper": value_net_path(args.model), "extended": value_net_path(args.extended_model)}
     for option, path in zip(("--model", "--extended-model"), nets.values(), strict=True):
         try:  # each network first flies after hours of the others' runs
             load_policy(scenario, path)
@@ -337,7 +344,7 @@ def cmd_figures(args: argparse.Namespace) -> int:
     log = Path(args.train_log)
     _check_train_log(log)
     try:  # Fig. 3 flies it last, after the online-map simulation of Fig. 2b
-        load_policy(scenario, Path(args.model))
+        load_policy(scenario, value_net_path(args.model))
     except EvaluationError as exc:
         raise UsageError(f"--model: {exc}") from None
     plot_reward_curve(log, out / "fig2a_reward_curve.png")
@@ -353,7 +360,7 @@ def cmd_figures(args: argparse.Namespace) -> int:
         params = None if jammer is None else RadioModel.jammer_of(jammer)
         try:
             positions, destinations, outcomes = trajectories(
-                scenario, setting, args.seed, Path(args.model))
+                scenario, setting, args.seed, value_net_path(args.model))
         except EvaluationError as exc:
             raise UsageError(f"figures: {exc}") from None
         panels.append((params, positions, destinations, outcomes))
@@ -559,8 +566,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--episodes", type=int, default=200)
     evaluation.add_argument("--uavs", type=int, default=None, help="UAVs per episode")
     evaluation.add_argument("--seed", type=int, default=0)
-    evaluation.add_argument("--model", default=str(VALUE_NET),
-                            help="value network (default: the shipped paper-method one)")
+    evaluation.add_argument("--model", default=DEFAULT_VALUE_NET, help=VALUE_NET_HELP)
     evaluation.add_argument("--sinr-map", default=None,
                             help="initial SINR map of the proposed method (default: the "
                                  "shipped no-jammer map of the scenario)")
@@ -577,9 +583,10 @@ def build_parser() -> argparse.ArgumentParser:
     table.add_argument("--episodes", type=int, default=200, help="episodes per cell")
     table.add_argument("--seed", type=int, default=0)
     table.add_argument("--out", default="results", metavar="DIR")
-    table.add_argument("--model", default=str(VALUE_NET), help="the paper-method value network")
-    table.add_argument("--extended-model", default=str(EXTENDED_VALUE_NET),
-                       help="the extended-method value network")
+    table.add_argument("--model", default="paper",
+                       help="the paper-method column's value network (a name or a path)")
+    table.add_argument("--extended-model", default=DEFAULT_VALUE_NET,
+                       help="the extended column's value network (a name or a path)")
     table.set_defaults(handler=cmd_table)
 
     figures = commands.add_parser("figures", help="the paper's Fig. 2a, 2b and 3 from real runs")
@@ -588,8 +595,8 @@ def build_parser() -> argparse.ArgumentParser:
     figures.add_argument("--seed", type=int, default=0)
     figures.add_argument("--train-log", default=str(VALUE_NET.with_name("train_log.csv")),
                          help="training log for Fig. 2a (default: the shipped model's)")
-    figures.add_argument("--model", default=str(EXTENDED_VALUE_NET),
-                         help="value network flown in Fig. 3 (default: the extended one)")
+    figures.add_argument("--model", default=DEFAULT_VALUE_NET,
+                         help=f"{VALUE_NET_HELP}, flown in Fig. 3")
     figures.set_defaults(handler=cmd_figures)
 
     training = commands.add_parser("train", help="train the value network (Algorithm 1)")

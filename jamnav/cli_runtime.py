@@ -20,6 +20,7 @@ from pathlib import Path
 from jamnav.arguments import SEED_MAX, UsageError, check_range, output_path
 from shared.messages import mapper_summary
 from shared.scenario import ScenarioError, load_scenario
+from shared.shipped import VALUE_NET_HELP, value_net_path
 from shared.topics import Topics, add_bus_arguments, endpoint_from
 
 DEFAULT_SWAP_TO = "25,-10,1"  # Table I's second setting
@@ -55,7 +56,7 @@ def _check_value_network(path: str, scenario) -> None:
     from cloud_service.evaluation import EvaluationError, load_policy
 
     try:
-        load_policy(scenario, Path(path))
+        load_policy(scenario, value_net_path(path))
     except EvaluationError as exc:
         raise UsageError(f"--model: {exc}") from None
 
@@ -102,7 +103,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         seed=args.seed, report=Path(args.report) if args.report else None,
         swap_at=args.swap_jammer_at, swap_to=swap_to,
         retrain_samples=args.retrain_samples, figures=not args.no_figures,
-        model=Path(args.model) if args.model else None,
+        model=value_net_path(args.model) if args.model else None,
         secure=args.secure or args.credentials is not None,
         credentials=Path(args.credentials) if args.credentials else None,
         command="jamnav " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["up"] else "jamnav up",
@@ -252,8 +253,8 @@ def register(commands) -> None:
     up.add_argument("--swap-to", default=None, metavar="X,Y,P|off",
                     help=f"where --swap-jammer-at moves it (default {DEFAULT_SWAP_TO})")
     up.add_argument("--seed", type=int, default=0)
-    up.add_argument("--model", default=None, metavar="PATH",
-                    help="value network the cloud serves (default: the shipped one)")
+    up.add_argument("--model", default=None, metavar="NAME|PATH",
+                    help=f"the {VALUE_NET_HELP} the cloud serves")
     up.add_argument("--run-dir", default=None, metavar="DIR",
                     help="logs, report, figures, SINR maps (default runs/up-<time>)")
     up.add_argument("--report", default=None, metavar="FILE",

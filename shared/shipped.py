@@ -17,3 +17,14 @@ _SURVEY_MAPS = {"icc2021-shadowed": SINR_MAP_NO_JAMMER_SHADOWED}
 def sinr_map_for(scenario_name: str) -> Path:
     """The shipped no-jammer SINR map learned from measurements in the named scenario."""
     return _SURVEY_MAPS.get(scenario_name, SINR_MAP_NO_JAMMER)
+
+# The shipped value networks by name; every command that takes one defaults to the best.
+VALUE_NETS = {"extended": EXTENDED_VALUE_NET, "paper": VALUE_NET}
+DEFAULT_VALUE_NET = "extended"
+VALUE_NET_HELP = ("value network: a shipped one by name (extended, the default and the best; "
+                  "paper, the paper's method) or a safetensors path")
+
+
+def value_net_path(name_or_path: str | Path) -> Path:
+    """A shipped value network by name, or the path given."""
+    return VALUE_NETS.get(str(name_or_path), Path(name_or_path))
