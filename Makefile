@@ -23,8 +23,8 @@ $(STAMP): pyproject.toml | $(BIN)/python
 # The main job: the distributed system (router, world, cloud, 4 agent processes) in real time,
 # the jammer swapped live through the control topic midway, then a summary and figures.
 demo: install
-	$(BIN)/jamnav up --uavs 4 --realtime --rate 100 --duration 60 --swap-jammer-at 30 \
-		--swap-to 25,-10,1 --retrain-samples 2000 --run-dir results/demo/up
+	$(BIN)/jamnav up --uavs 4 --realtime --rate 20 --duration 60 --swap-jammer-at 30 \
+		--swap-to 25,-10,1 --run-dir results/demo/up
 
 test: install
 	$(BIN)/python -m pytest

@@ -481,9 +481,10 @@ class OnlineSinrMapper:
                         self._on_change(check)
                 else:
                     self._change.measurements += int((stored.times >= self._change.start).sum())
-            job = None if self._busy or self._change is None else self._change.next_job(
-                self.retrain)
-            self._busy = job is not None
+            job = None
+            if not self._busy and self._change is not None:  # one worker at a time
+                job = self._change.next_job(self.retrain)
+                self._busy = job is not None
         if job is not None:
             if self.background:
                 self._worker = threading.Thread(target=self._run, args=(job,),
@@ -627,7 +628,9 @@ class _Change:
                         config.estimate_growth * self.tried_at):
                 return "estimate"
             return None
-        if n >= config.settle_after and n - self.fitted_at < config.refine_every:
+        # Settled once a fit has seen enough, however fast more arrives: with uploads
+        # outpacing the fits, waiting for a quiet moment would keep the detector off for good.
+        if self.fitted_at >= config.settle_after:
             return "settle"
         if n - self.fitted_at >= config.refine_every:
             return "estimate"
