@@ -628,9 +628,11 @@ class _Change:
                         config.estimate_growth * self.tried_at):
                 return "estimate"
             return None
-        # Settled once a fit has seen enough, however fast more arrives: with uploads
-        # outpacing the fits, waiting for a quiet moment would keep the detector off for good.
-        if self.fitted_at >= config.settle_after:
+        # Settled once enough has come in and the last fit is recent, or once a fit has seen
+        # enough however fast more arrives: with uploads outpacing the fits (the bus at 20x
+        # real time), waiting for a recent fit would keep the detector off for good.
+        if self.fitted_at >= config.settle_after or (
+                n >= config.settle_after and n - self.fitted_at < config.refine_every):
             return "settle"
         if n - self.fitted_at >= config.refine_every:
             return "estimate"
