@@ -15,6 +15,7 @@ import dataclasses
 import numpy as np
 
 from benchmarks.common import Figure
+from cloud_service.evaluation import random_jammer
 from cloud_service.jammer_estimation import estimate_jammer, positions_from_features
 from cloud_service.online_map_sim import Fleet
 from cloud_service.sinr_mapping import ChangeDetector, OnlineSinrMapper
@@ -51,12 +52,6 @@ def run() -> list[Figure]:
     return figures
 
 
-def random_setting(scenario: Scenario, rng: np.random.Generator) -> JammerSetting:
-    area, powers = scenario.area, scenario.training.jammer_power_range_w
-    x, y = rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max))
-    return JammerSetting(float(x), float(y), float(rng.uniform(*powers)))
-
-
 class TruthGrid:
     """The true levels (shadowing included, no receiver noise) over the area, to score maps."""
 
@@ -84,7 +79,7 @@ def _mapper(scenario: Scenario, now: list[float], seed: int) -> OnlineSinrMapper
 def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
     """No jammer for WARM_UP_S, then a random jammer for AFTER_S."""
     rng = np.random.default_rng(seed)
-    setting = random_setting(scenario, rng)
+    setting = random_jammer(scenario, rng)
     now = [0.0]
     mapper = _mapper(scenario, now, seed)
     fleet = Fleet(scenario, UAVS, rng)
@@ -219,7 +214,7 @@ def localization_figures(scenario: Scenario) -> list[Figure]:
     errors, power_errors, failures = [], [], 0
     for k in range(LOCALIZATION_SETTINGS):
         rng = np.random.default_rng(1000 + k)
-        setting = random_setting(scenario, rng)
+        setting = random_jammer(scenario, rng)
         fleet = Fleet(scenario, UAVS, rng)
         batches = []
         for step in range(int(LOCALIZATION_FLIGHT_S / dt)):

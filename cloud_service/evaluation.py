@@ -99,9 +99,7 @@ class OnlineMaps:
         """Every UAV that flew this step uploads what its receiver reported along the way,
         de-duplicated as an agent de-duplicates (``SpotFilter``)."""
         self.now += world.dt
-        # A UAV whose mission ended in this step uploads nothing more, as its agent hears
-        # nothing more from the world.
-        env, uav = np.nonzero(world.measured & world.active)
+        env, uav = np.nonzero(world.measured)
         if env.size == 0:
             return
         if self.spots is None:
@@ -129,18 +127,23 @@ def swapping_jammers(scenario: Scenario, first: JammerSetting | None, swap_every
     """Episode -> jammer: ``first`` for the first ``swap_every`` episodes, then a fresh random
     setting every ``swap_every`` (position uniform over the area, power uniform over the
     scenario's training range), drawn from ``seed`` alone; ``first`` throughout without swaps."""
-    area, powers = scenario.area, scenario.training.jammer_power_range_w
 
     def at(episode: int) -> JammerSetting | None:
         period = 0 if swap_every is None else episode // swap_every
         if period == 0:
             return first
-        rng = np.random.default_rng([seed, _SWAP_STREAM, period])
-        x, y = rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max))
-        return JammerSetting(round(float(x), 1), round(float(y), 1),
-                             round(float(rng.uniform(*powers)), 2))
+        x, y, power_w = random_jammer(scenario, np.random.default_rng([seed, _SWAP_STREAM,
+                                                                       period]))
+        return JammerSetting(round(x, 1), round(y, 1), round(power_w, 2))
 
     return at
+
+
+def random_jammer(scenario: Scenario, rng: np.random.Generator) -> JammerSetting:
+    """A jammer anywhere in the area, its power uniform over the scenario's training range."""
+    area, powers = scenario.area, scenario.training.jammer_power_range_w
+    x, y = rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max))
+    return JammerSetting(float(x), float(y), float(rng.uniform(*powers)))
 
 
 def transient_episodes(schedule: JammerSchedule, start_version: np.ndarray) -> np.ndarray:
@@ -181,8 +184,8 @@ def evaluate(
     headline rates count every episode; for ``proposed`` the transient (episodes flown on a
     map older than the jammer) is also reported apart, as is the rest. ``sinr_map``: the
     survey map ``proposed`` starts from (default: the shipped one of the scenario's world).
-    ``memory_dir`` keeps
-    the cloud's measurement memory of a ``proposed`` run (a scratch directory otherwise)."""
+    ``memory_dir`` keeps the cloud's measurement memory of a ``proposed`` run (a scratch
+    directory otherwise)."""
     if method not in METHODS:
         raise EvaluationError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     schedule = swapping_jammers(scenario, jammer, swap_every, seed)

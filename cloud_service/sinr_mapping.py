@@ -545,8 +545,8 @@ class OnlineSinrMapper:
         features, levels = data.features, data.levels
         start_from = self._network
         if estimate is not None:
-            prior_xy = np.random.default_rng(self._seed + self._version).uniform(
-                *self._area_corners(), size=(config.prior_points, 2))
+            prior_xy = uniform_positions(self.scenario, config.prior_points,
+                                         np.random.default_rng(self._seed + self._version))
             prior_features = scenario_features(self.scenario, prior_xy)
             prior_levels = corrected_levels(self.scenario, self._base_levels, estimate, prior_xy)
             features = np.concatenate([features, prior_features])
@@ -587,10 +587,6 @@ class OnlineSinrMapper:
 
     def _base_levels(self, xy: np.ndarray) -> np.ndarray:
         return predict_levels(self._base, scenario_features(self.scenario, xy))
-
-    def _area_corners(self) -> tuple[tuple[float, float], tuple[float, float]]:
-        area = self.scenario.area
-        return (area.x_min, area.y_min), (area.x_max, area.y_max)
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait for running work; True when none is running any more."""

@@ -76,7 +76,7 @@ class Uav(_Strict):
     measurement_noise_db: NonNegative = 0.0
     # A UAV keeps a new measurement only this far from its last kept one, or at a new level:
     # a hovering UAV would otherwise report one spot over and over.
-    measurement_spacing_m: NonNegative = 1.0
+    measurement_spacing_m: NonNegative = 0.25
 
 
 class Shadowing(_Strict):

@@ -18,6 +18,7 @@ def sinr_map_for(scenario_name: str) -> Path:
     """The shipped no-jammer SINR map learned from measurements in the named scenario."""
     return _SURVEY_MAPS.get(scenario_name, SINR_MAP_NO_JAMMER)
 
+
 # The shipped value networks by name; every command that takes one defaults to the best.
 VALUE_NETS = {"extended": EXTENDED_VALUE_NET, "paper": VALUE_NET}
 DEFAULT_VALUE_NET = "extended"

@@ -91,7 +91,7 @@ class Topics:
 
     @property
     def jammer_estimate(self) -> str:
-        """The cloud's latest estimate of the jammer (also kept for late queries)."""
+        """The cloud's estimate of the jammer, put with each map corrected by one."""
         return f"{self.prefix}/cloud/jammer_estimate"
 
     # -- control, events, presence ----------------------------------------------------------

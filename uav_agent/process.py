@@ -252,8 +252,10 @@ class AgentService:
             return
         features = scenario_features(self.scenario, kept[:, :2])
         now = time.time()
+        # Built unchecked from the agent's own numbers, ten a step: the cloud checks every
+        # record on receipt (MeasurementSpec).
         for row, level in zip(features.tolist(), kept[:, 2].astype(int).tolist(), strict=True):
-            self.outbox.add(Measurement(
+            self.outbox.add(Measurement.model_construct(
                 id=f"{self.uav}-{self.nonce}-{next(self.measured)}", source=f"uav-{self.uav}",
                 step=observation.step, time=now, features=row, level=level), self.upload_every)
 

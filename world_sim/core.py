@@ -240,4 +240,7 @@ class VectorWorld:
         self.below_steps = np.where(active, below, self.below_steps)
         finished = active & (status != Outcome.ACTIVE)
         self.status = status
+        # A UAV whose mission ended in this step uploads nothing more: over the bus its agent
+        # hears nothing more from the world.
+        self.measured &= ~finished
         return StepResult(reward, finished, ~self.active.any(axis=1))
