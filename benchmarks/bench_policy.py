@@ -9,8 +9,8 @@ import numpy as np
 from benchmarks.common import Figure, best_rate
 from cloud_service.evaluation import load_policy
 from cloud_service.rollout import LookaheadController, perfect_maps
+from cloud_service.torch_networks import TorchValueNetwork
 from shared.features import joint_state_size
-from shared.networks import ValueNetwork
 from shared.policy import LookaheadPolicy
 from shared.scenario import load_scenario
 from shared.shipped import EXTENDED_VALUE_NET
@@ -22,7 +22,8 @@ def run() -> list[Figure]:
     world = VectorWorld(scenario, 64, 4)
     world.reset(np.arange(64), [episode_seed(0, k) for k in range(64)])
     policies = {
-        "paper's method": LookaheadPolicy(scenario, ValueNetwork(joint_state_size(scenario), 2.0)),
+        "paper's method": LookaheadPolicy(
+            scenario, TorchValueNetwork(joint_state_size(scenario), 2.0).inference()),
         "extended": load_policy(scenario, EXTENDED_VALUE_NET),
     }
     figures = []

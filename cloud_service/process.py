@@ -63,7 +63,7 @@ from shared.shipped import (
     sinr_map_for,
     value_net_path,
 )
-from shared.topics import Topics, add_bus_arguments, endpoint_from
+from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
 
 ROLE = "cloud"
 # Measurements are stamped with the agent's clock: a stamp further ahead than this is a bad
@@ -310,7 +310,7 @@ def mapper_details(state: dict) -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m cloud_service.process", description=__doc__)
+    parser = ArgumentParser(prog="python -m cloud_service.process", description=__doc__)
     add_bus_arguments(parser)
     parser.add_argument("--scenario", default=None)
     parser.add_argument("--map", choices=("online", "perfect", "outdated"), default="online")

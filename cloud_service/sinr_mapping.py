@@ -21,7 +21,6 @@ uniform measurements: ~89-92 % with K_n = 4, ~96-97 % with 8, ~98 % with 12.
 
 from __future__ import annotations
 
-import copy
 import threading
 import time as wall
 from collections import deque
@@ -40,6 +39,7 @@ from cloud_service.jammer_estimation import (
     positions_from_features,
 )
 from cloud_service.sinr_memory import SinrMemory, Uploads
+from cloud_service.torch_networks import TorchSinrMapNetwork
 from shared.measurements import (
     MeasurementBatch,
     predict_levels,
@@ -171,16 +171,17 @@ def train_sinr_map(
     if network is None:
         with torch.random.fork_rng():
             torch.manual_seed(seed)
-            network = SinrMapNetwork(features.shape[1], level_count)
-        network.standardize.fit(train_x)
+            module = TorchSinrMapNetwork(features.shape[1], level_count)
+        module.standardize.fit(train_x)
     else:
-        network = copy.deepcopy(network)
-    network.train()
-    optimizer = torch.optim.Adam(network.parameters(), lr=LEARNING_RATE, weight_decay=L2)
+        module = TorchSinrMapNetwork(network.input_size, network.levels)
+        module.assign(network)
+    trained = module.inference()  # reads the module's memory: it follows every step
+    optimizer = torch.optim.Adam(module.parameters(), lr=LEARNING_RATE, weight_decay=L2)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps, eta_min=FINAL_LR)
 
     def held_out_accuracy() -> float:
-        return accuracy_of(network, test_x, test_y)
+        return accuracy_of(trained, test_x.numpy(), test_y.numpy())
 
     accuracy, done = float("nan"), 0
     batches = torch.randperm(len(train_y), generator=generator)
@@ -191,7 +192,7 @@ def train_sinr_map(
             cursor = 0
         rows = batches[cursor : cursor + BATCH_SIZE]
         cursor += BATCH_SIZE
-        loss = functional.cross_entropy(network(train_x[rows]), train_y[rows])
+        loss = functional.cross_entropy(module(train_x[rows]), train_y[rows])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -205,8 +206,7 @@ def train_sinr_map(
                 break
             if max_seconds is not None and wall.perf_counter() - started >= max_seconds:
                 break
-    network.eval()
-    return TrainResult(network, accuracy, done, wall.perf_counter() - started)
+    return TrainResult(trained, accuracy, done, wall.perf_counter() - started)
 
 
 def fit_sinr_map(
@@ -424,8 +424,8 @@ class OnlineSinrMapper:
         self.background = background
         self.events: list[dict[str, Any]] = []
         self.estimate: JammerEstimate | None = None
-        self._network = network.eval()
-        self._base = (base_network or network).eval()
+        self._network = network
+        self._base = base_network or network
         self._accuracy = accuracy
         self._version = version
         self._seed = seed

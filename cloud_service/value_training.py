@@ -40,6 +40,7 @@ from cloud_service.rollout import (
     perfect_maps,
     run_episodes,
 )
+from cloud_service.torch_networks import TorchValueNetwork
 from shared.features import METHODS, MethodOptions, joint_state_size, observation_state
 from shared.networks import ValueNetwork, from_bytes, save_network, to_bytes
 from shared.outcomes import Outcome
@@ -158,14 +159,14 @@ class TrajectoryRecorder:
         return self.states[env, uav, :length], self.rewards[env, uav, :length]
 
 
-def adam(net: ValueNetwork, config: TrainConfig) -> torch.optim.Adam:
+def adam(net: TorchValueNetwork, config: TrainConfig) -> torch.optim.Adam:
     """The paper's optimizer; the fused kernel halves the cost of a step of this small net."""
     return torch.optim.Adam(net.parameters(), lr=config.learning_rate,
                             weight_decay=config.weight_decay, fused=True)
 
 
 def fit_value_net(
-    net: ValueNetwork,
+    net: TorchValueNetwork,
     states: np.ndarray,
     values: np.ndarray,
     epochs: int,
@@ -268,7 +269,7 @@ def fly(
 
 
 def td_targets(
-    target_net: ValueNetwork,
+    target_net: TorchValueNetwork,
     missions: list[tuple[np.ndarray, np.ndarray]],
     gamma: float,
     device: torch.device,
@@ -287,12 +288,10 @@ def td_targets(
     return states, (rewards + gamma * next_values).astype(np.float32)
 
 
-def validate(
-    scenario: Scenario, net: ValueNetwork, episodes: int, uavs: int, device: str
-) -> dict[str, float]:
+def validate(scenario: Scenario, net: ValueNetwork, episodes: int, uavs: int) -> dict[str, float]:
     """Greedy lookahead on the true map, over the fixed validation episodes of each Table I
     jammer setting: the share of UAV-episodes ending in each outcome."""
-    policy = LookaheadPolicy(scenario, net, device)
+    policy = LookaheadPolicy(scenario, net)
     outcomes = [
         run_episodes(scenario, LookaheadController(policy, perfect_maps(scenario)), episodes,
                      VALIDATION_SEED, setting, uavs).outcomes
@@ -333,7 +332,7 @@ class Checkpoint:
     def save(self, net, target, best, optimizer, memory: ReplayMemory, progress: dict) -> None:
         self.dir.mkdir(parents=True, exist_ok=True)
         for module, name in ((net, "value"), (target, "target"), (best, "best")):
-            (self.dir / f"{name}.safetensors").write_bytes(to_bytes(module))
+            (self.dir / f"{name}.safetensors").write_bytes(to_bytes(module.inference()))
         torch.save(optimizer.state_dict(), self.dir / "optimizer.pt")
         save_arrays(memory.arrays(), str(self.dir / "memory.safetensors"))
         tmp = self.dir / "progress.json.tmp"
@@ -342,8 +341,7 @@ class Checkpoint:
 
     def load(self, net, target, best, optimizer, memory: ReplayMemory) -> dict:
         for module, name in ((net, "value"), (target, "target"), (best, "best")):
-            restored = from_bytes((self.dir / f"{name}.safetensors").read_bytes())
-            module.load_state_dict(restored.state_dict())
+            module.assign(from_bytes((self.dir / f"{name}.safetensors").read_bytes()))
         optimizer.load_state_dict(torch.load(self.dir / "optimizer.pt", weights_only=True))
         arrays = load_arrays(str(self.dir / "memory.safetensors"))
         memory.push(arrays["states"], arrays["values"])
@@ -369,9 +367,9 @@ def train(
     rng = np.random.default_rng([config.seed, 1])
     options = METHODS[config.method]
     size = joint_state_size(scenario, options)
-    net = ValueNetwork(size, scenario.policy.value_scale, options._asdict()).to(device)
-    target = ValueNetwork(size, scenario.policy.value_scale, options._asdict()).to(device)
-    best = ValueNetwork(size, scenario.policy.value_scale, options._asdict()).to(device)
+    net = TorchValueNetwork(size, scenario.policy.value_scale, options._asdict()).to(device)
+    target = TorchValueNetwork(size, scenario.policy.value_scale, options._asdict()).to(device)
+    best = TorchValueNetwork(size, scenario.policy.value_scale, options._asdict()).to(device)
     maps = perfect_maps(scenario)
     memory = ReplayMemory(config.capacity(uavs), size)
     checkpoint = Checkpoint(out)
@@ -404,7 +402,7 @@ def train(
         with log_path.open("w", newline="") as handle:
             csv.writer(handle).writerow(LOG_FIELDS)
 
-    policy = LookaheadPolicy(scenario, net, config.device, shield=False)
+    policy = LookaheadPolicy(scenario, net.inference(), shield=False)
     controller = LookaheadController(policy, maps, rng=rng)
     world = VectorWorld(scenario, config.envs, uavs)
     gamma = scenario.policy.gamma
@@ -437,6 +435,8 @@ def train(
             loss.backward()
             optimizer.step()
         net.eval()
+        # Off the CPU the numpy form is a copy: the lookahead takes the updated one.
+        policy.value_net = net.inference()
         if done % config.target_sync_episodes == 0:
             target.load_state_dict(net.state_dict())
         counts = [int(np.count_nonzero(stats.outcomes == o)) for o in
@@ -460,8 +460,8 @@ def train(
             td_seconds += time.perf_counter() - chunk_start
             next_episode += chunk
             log_handle.flush()
-            scores.append({"episode": done, **validate(scenario, net, config.validation_episodes,
-                                                       uavs, config.device)})
+            scores.append({"episode": done, **validate(scenario, net.inference(),
+                                                       config.validation_episodes, uavs)})
             leader = best_score(scores)
             if leader is scores[-1]:
                 best.load_state_dict(net.state_dict())
@@ -506,7 +506,7 @@ def train(
         },
         "reproduce": command or "jamnav train",
     }
-    save_network(best.cpu(), out / "value_net.safetensors", card)
+    save_network(best.inference(), out / "value_net.safetensors", card)
     from shared.plots import plot_reward_curve  # matplotlib only when writing
 
     plot_reward_curve(log_path, out / "reward_curve.png")

@@ -9,14 +9,15 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from jamnav.arguments import SEED_MAX, UsageError, check_range, output_path
+from jamnav.cli_runtime import _guarded
 from jamnav.cli_runtime import register as register_runtime
 from shared.radio import RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario, resolve_scenario_path
@@ -27,14 +28,7 @@ from shared.shipped import (
     VALUE_NET_HELP,
     value_net_path,
 )
-
-
-class _Parser(argparse.ArgumentParser):
-    """Reads "-12.5,-33" as a value, not an option: coordinates are often negative."""
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self._negative_number_matcher = re.compile(r"^-\.?\d[\d.,eE+-]*$")
+from shared.topics import DEFAULT_ENDPOINT, DEFAULT_PREFIX, ENDPOINT_ENV, ArgumentParser
 
 
 # -- argument helpers -------------------------------------------------------------------------
@@ -363,7 +357,7 @@ def cmd_figures(args: argparse.Namespace) -> int:
                 scenario, setting, args.seed, value_net_path(args.model))
         except EvaluationError as exc:
             raise UsageError(f"figures: {exc}") from None
-        panels.append((params, positions, destinations, outcomes))
+        panels.append(("", params, positions, destinations, outcomes))
     save_trajectory_figure(scenario, panels, out / "fig3_trajectories.png")
     print(f"wrote {out / 'fig3_trajectories.png'}", file=sys.stderr)
     return 0
@@ -521,12 +515,44 @@ def cmd_online_map(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_chaos(args: argparse.Namespace) -> int:
+    from jamnav.chaos import QUIET_S, chaos, fault_schedule
+    from jamnav.supervisor import UpConfig
+    from shared.topics import Topics, endpoint_from
+
+    scenario = _load_scenario(args)
+    check_range("--uavs", args.uavs, 1, 64)
+    check_range("--rate", args.rate, 0, above=True)
+    check_range("--seed", args.seed, 0, SEED_MAX)
+    interval = _numbers(args.interval, 2, "--interval")
+    freeze = _numbers(args.freeze, 2, "--freeze")
+    if not 0 < interval[0] <= interval[1]:
+        raise UsageError(f"--interval {args.interval}: expected MIN,MAX with 0 < MIN <= MAX")
+    if not 0 < freeze[0] <= freeze[1] < interval[0]:
+        raise UsageError(f"--freeze {args.freeze}: expected MIN,MAX with 0 < MIN <= MAX and "
+                         "MAX below the --interval's MIN (a freeze ends before the next fault)")
+    check_range("--duration", args.duration, QUIET_S + interval[1])
+    run_dir = output_path("--run-dir", args.run_dir or time.strftime("runs/chaos-%Y%m%d-%H%M%S"),
+                          directory=True)
+    if run_dir.exists() and any(run_dir.iterdir()):
+        raise UsageError(f"--run-dir {args.run_dir}: not empty; the ledger needs a fresh "
+                         "directory (an earlier run's memory and outboxes would count)")
+    Topics(args.prefix)  # refuses a malformed prefix before anything starts
+    config = UpConfig(endpoint=endpoint_from(args.endpoint), run_dir=run_dir, prefix=args.prefix,
+                      scenario=args.scenario, uavs=args.uavs, duration=args.duration,
+                      clock="realtime", rate=args.rate, map=args.map, seed=args.seed,
+                      figures=False, command="jamnav " + " ".join(sys.argv[1:]))
+    faults = fault_schedule(args.seed, args.duration, (interval[0], interval[1]),
+                            (freeze[0], freeze[1]), args.uavs)
+    return chaos(config, scenario, faults)
+
+
 EVAL_METHODS = ("proposed", "perfect", "outdated", "orca", "straight")
 
 
 # -- parser -----------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(
+    parser = ArgumentParser(
         prog="jamnav", description="Jamming-resilient path planning for many UAVs."
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -638,6 +664,29 @@ def build_parser() -> argparse.ArgumentParser:
     online.add_argument("--seed", type=int, default=0)
     online.add_argument("--out", required=True, metavar="FILE.png")
     online.set_defaults(handler=cmd_online_map)
+
+    soak = commands.add_parser(
+        "chaos", help="run the system while killing and freezing its processes, then check "
+                      "that nothing was lost")
+    _add_scenario(soak)
+    soak.add_argument("--endpoint", default=None,
+                      help=f"its router (default ${ENDPOINT_ENV} or {DEFAULT_ENDPOINT})")
+    soak.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix of the system")
+    soak.add_argument("--duration", type=float, required=True, metavar="SEC",
+                      help="seconds of flight; the last 20 s without faults")
+    soak.add_argument("--interval", default="10,30", metavar="MIN,MAX",
+                      help="seconds between faults, drawn uniformly (default 10,30)")
+    soak.add_argument("--freeze", default="2,6", metavar="MIN,MAX",
+                      help="seconds a frozen process stays frozen (default 2,6)")
+    soak.add_argument("--seed", type=int, default=0, help="of the faults and the episodes")
+    soak.add_argument("--uavs", type=int, default=3, help="UAVs (one agent process each)")
+    soak.add_argument("--rate", type=float, default=10.0, help="steps per second")
+    soak.add_argument("--map", choices=("online", "perfect", "outdated"), default="online",
+                      help="the agents' SINR map (as jamnav up)")
+    soak.add_argument("--run-dir", default=None, metavar="DIR",
+                      help="a new directory: logs, report.json, ledger.json (default "
+                           "runs/chaos-<time>)")
+    soak.set_defaults(handler=_guarded(cmd_chaos))
     register_runtime(commands)
     return parser
 

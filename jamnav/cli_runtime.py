@@ -1,5 +1,6 @@
-"""The runtime's sub-commands of ``jamnav``: ``up``, ``jammer {set,off,show}``, ``status`` and
-``router``. ``register`` adds them to the parser of ``jamnav/cli.py``.
+"""The runtime's sub-commands of ``jamnav``: ``up``, ``jammer {set,off,show}``, ``status``,
+``console``, ``record``, ``replay`` and ``router``. ``register`` adds them to the parser of
+``jamnav/cli.py``.
 
 Every command finds the running system through its router: ``--endpoint``, else
 $JAMNAV_ENDPOINT, else tcp/127.0.0.1:7447 (where ``jamnav up`` puts it). A mistake in the
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import sys
 import threading
@@ -18,10 +20,16 @@ import time
 from pathlib import Path
 
 from jamnav.arguments import SEED_MAX, UsageError, check_range, output_path
-from shared.messages import mapper_summary
+from shared.messages import JammerCommand, mapper_summary
 from shared.scenario import ScenarioError, load_scenario
 from shared.shipped import VALUE_NET_HELP, value_net_path
-from shared.topics import Topics, add_bus_arguments, endpoint_from
+from shared.topics import (
+    DEFAULT_ENDPOINT,
+    ENDPOINT_ENV,
+    Topics,
+    add_bus_arguments,
+    endpoint_from,
+)
 
 DEFAULT_SWAP_TO = "25,-10,1"  # Table I's second setting
 DEFAULT_RATE = 10.0
@@ -61,7 +69,29 @@ def _check_value_network(path: str, scenario) -> None:
         raise UsageError(f"--model: {exc}") from None
 
 
+def _second_router(args: argparse.Namespace, endpoint: str) -> tuple[str | None, str | None]:
+    """``--routers 2``: the agents' router and the TLS link between the routers, by default
+    on the two ports after ``endpoint``."""
+    from jamnav.supervisor import next_endpoint
+
+    if args.routers == 1:
+        if args.agent_endpoint or args.link_endpoint:
+            raise UsageError("--agent-endpoint and --link-endpoint place the second router: "
+                             "add --routers 2")
+        return None, None
+    agents = endpoint_from(args.agent_endpoint or next_endpoint(endpoint, 1))
+    link = endpoint_from(args.link_endpoint or next_endpoint(endpoint, 2, "tls"))
+    if not link.startswith("tls/"):
+        raise UsageError(f"--link-endpoint {link!r}: the routers link over TLS (tls/HOST:PORT)")
+    ports = [e.partition("/")[2] for e in (endpoint, agents, link)]
+    if len(set(ports)) < len(ports):
+        raise UsageError("--endpoint, --agent-endpoint and --link-endpoint need three "
+                         "different ports")
+    return agents, link
+
+
 def cmd_up(args: argparse.Namespace) -> int:
+    from jamnav.console import listen
     from jamnav.supervisor import UpConfig, up
     from shared import access
     from shared.messages import JammerInfo
@@ -92,11 +122,20 @@ def cmd_up(args: argparse.Namespace) -> int:
                           directory=True)
     if args.report:
         output_path("--report", args.report)
+    if args.record:
+        output_path("--record", args.record)
+        if args.secure or args.credentials is not None:
+            raise UsageError("--record: a secure system shows its operator only the events, "
+                             "world state and jammer estimates; record those with "
+                             "`jamnav record --credentials`")
     Topics(args.prefix)  # refuses a malformed prefix before anything starts
     if args.credentials is not None:  # refuses a file without every role's login, too
-        access.load(args.credentials, access.roles(uavs))
+        access.load(args.credentials, access.roles(uavs, linked=args.routers > 1))
+    endpoint = endpoint_from(args.endpoint)
+    agent_endpoint, link_endpoint = _second_router(args, endpoint)
+    web = None if args.no_web else listen.settle(args.web)
     config = UpConfig(
-        endpoint=endpoint_from(args.endpoint), run_dir=run_dir, prefix=args.prefix,
+        endpoint=endpoint, run_dir=run_dir, prefix=args.prefix,
         scenario=args.scenario, uavs=uavs, episodes=args.episodes, duration=args.duration,
         clock="realtime" if args.realtime else "lockstep", rate=args.rate or DEFAULT_RATE,
         deadline=args.deadline, map=args.map, jammer=args.jammer, no_jammer=args.no_jammer,
@@ -106,25 +145,36 @@ def cmd_up(args: argparse.Namespace) -> int:
         model=value_net_path(args.model) if args.model else None,
         secure=args.secure or args.credentials is not None,
         credentials=Path(args.credentials) if args.credentials else None,
+        routers=args.routers, agent_endpoint=agent_endpoint, link_endpoint=link_endpoint,
+        web=web,
+        record=Path(args.record) if args.record else None,
         command="jamnav " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["up"] else "jamnav up",
     )
     return up(config, scenario)
 
 
 # -- jammer -------------------------------------------------------------------------------------
+def jammer_command(action: str, numbers: tuple | None = None, what: str = ""
+                   ) -> JammerCommand:
+    """The world's ``JammerCommand``: ``set`` at ``numbers`` (x, y, power_w, height_m or
+    None), ``off`` or ``show``. Numbers it would refuse are a UsageError with one line that
+    quotes ``what`` the user gave (the command line's X,Y,P[,H], the console's JSON)."""
+    if action != "set":
+        return JammerCommand(action=action)
+    x, y, power, height = numbers
+    try:
+        return JammerCommand(action="set", x=x, y=y, power_w=power, height_m=height)
+    except ValueError:
+        raise UsageError(f"jammer set {what}: position, power and height must be finite, "
+                         "power and height >= 0") from None
+
+
 def cmd_jammer(args: argparse.Namespace) -> int:
     from shared import access, bus
-    from shared.messages import JammerCommand, JammerReply
+    from shared.messages import JammerReply, jammer_numbers
 
-    if args.jammer_command == "set":
-        try:
-            command = JammerCommand(action="set", x=args.x, y=args.y, power_w=args.power,
-                                    height_m=args.height)
-        except ValueError:
-            raise UsageError("jammer set: --x, --y, --power and --height must be finite, "
-                             "--power and --height >= 0") from None
-    else:
-        command = JammerCommand(action=args.jammer_command)
+    numbers = jammer_numbers(args.jammer) if args.jammer_command == "set" else None
+    command = jammer_command(args.jammer_command, numbers, args.jammer if numbers else "")
     topics = Topics(args.prefix)
     login = access.login_for(args.credentials, access.OPERATOR)
     with bus.open_session("client", endpoint_from(args.endpoint), 2000, login=login) as session:
@@ -196,9 +246,96 @@ def cmd_status(args: argparse.Namespace) -> int:
     return 0
 
 
-# -- router -------------------------------------------------------------------------------------
-def cmd_router(args: argparse.Namespace) -> int:
+# -- record and replay ---------------------------------------------------------------------------
+def cmd_record(args: argparse.Namespace) -> int:
+    from jamnav.recording import RECORDER_NICENESS, record
     from shared import access, bus
+
+    check_range("--duration", args.duration, 0, above=True)
+    out = output_path("--out", args.out)
+    topics = Topics(args.prefix)
+    endpoint = endpoint_from(args.endpoint)
+    login = access.login_for(args.credentials, access.OPERATOR)
+    # A secure router lets the operator subscribe to its own keys only, never to everything.
+    keys = [topics.everything] if login is None else access.grants(
+        topics, access.OPERATOR)["subscribe"]
+    log = bus.setup_logging("recorder")
+    stop = threading.Event()
+    bus.stop_on_signals(stop)
+    with bus.open_session("client", endpoint, login=login) as session:
+        # Linux sets it per thread: this one, which writes, yields; zenoh's, which receive
+        # and only queue, keep up.
+        os.nice(RECORDER_NICENESS)
+        summary = record(session, topics, out, keys, stop, args.duration, log)
+    refused = sum(summary.refused.values())
+    print(f"recorded {summary.messages} messages on {summary.keys} keys to {summary.path} "
+          f"({summary.cpu_s:.2f} s CPU" + (f", {refused} refused: {summary.refused})"
+                                          if refused else ")"), file=sys.stderr)
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from jamnav.recording import Recording, replay
+    from shared import bus
+
+    check_range("--speed", args.speed, 0, above=True)
+    if args.prefix is not None:
+        Topics(args.prefix)
+    endpoint = endpoint_from(args.endpoint)
+    with Recording(args.file) as recording:
+        stop = threading.Event()
+        bus.stop_on_signals(stop)
+        with bus.open_session("client", endpoint) as session:
+            count = replay(session, recording, args.prefix, args.speed, stop)
+        root = args.prefix or recording.prefix
+    print(f"replayed {count} messages of {args.file} under {root}/ at {endpoint}",
+          file=sys.stderr)
+    return 0
+
+
+# -- console ------------------------------------------------------------------------------------
+def cmd_console(args: argparse.Namespace) -> int:
+    from jamnav.console import listen
+    from jamnav.console.server import serve
+    from shared import access
+
+    scenario = load_scenario(args.scenario)
+    topics = Topics(args.prefix)
+    endpoint = endpoint_from(args.endpoint)
+    login = access.login_for(args.credentials, access.OPERATOR)
+    if login is None and args.token_file is not None:
+        raise UsageError("--token-file: only a secure system's console (--credentials) "
+                         "takes a token")
+    token = None if login is None else listen.token_for(Path(
+        args.token_file or Path(args.credentials).parent / listen.TOKEN_FILE))
+    listener, address = listen.open_listener(args.web)
+    return serve(listener, address, endpoint, topics, scenario, login, token)
+
+
+# -- router -------------------------------------------------------------------------------------
+def _router_guard(args: argparse.Namespace):
+    """What a secure router enforces (the logins of ``--roles`` and their rules) and the login
+    it presents to the routers it connects to. A router linked to others (``--connect``,
+    ``--listen``) also accepts the routers' login, and relays for a router that presents a
+    certificate of the system's authority (its zenoh configuration demands one)."""
+    from shared import access
+
+    if args.credentials is None:
+        if args.roles is not None:
+            raise UsageError("--roles says whose logins of --credentials the router accepts: "
+                             "give both")
+        return None, None
+    linked = bool(args.connect or args.listen)
+    credentials = access.load(args.credentials, (access.ROUTER,) if linked else ())
+    if args.roles is not None:
+        credentials = credentials.only(
+            [*args.roles.split(","), *([access.ROUTER] if linked else [])])
+    login = credentials.login(access.ROUTER) if args.connect else None
+    return access.Guard(credentials, args.prefix, linked), login
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from shared import bus
 
     endpoint = endpoint_from(args.endpoint)
     for other in args.connect + args.listen:
@@ -206,17 +343,12 @@ def cmd_router(args: argparse.Namespace) -> int:
     topics = Topics(args.prefix)
     if not _ROUTER_ID.match(args.id):
         raise UsageError(f"--id {args.id!r}: use letters, digits, _ and - (it is a key chunk)")
-    guard = None
-    if args.credentials is not None:
-        if args.connect:
-            raise UsageError("--credentials with --connect: a secure system has a single "
-                             "router (its access rules would treat a linked router as one "
-                             "user)")
-        guard = access.Guard(access.load(args.credentials), args.prefix)
+    guard, login = _router_guard(args)
     stop = threading.Event()
     bus.stop_on_signals(stop)
-    with bus.open_session("router", endpoint, routers=tuple(args.connect), guard=guard,
-                          base_file=args.zenoh_config, listeners=tuple(args.listen)) as session:
+    with bus.open_session("router", endpoint, routers=tuple(args.connect), login=login,
+                          guard=guard, base_file=args.zenoh_config,
+                          listeners=tuple(args.listen)) as session:
         token = bus.declare_alive(session, topics, "router", args.id)
         print(f"jamnav router listening on {', '.join([endpoint, *args.listen])}",
               file=sys.stderr, flush=True)
@@ -226,7 +358,8 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 
 def register(commands) -> None:
-    """Add ``up``, ``jammer``, ``status`` and ``router`` to ``jamnav``'s sub-parsers."""
+    """Add ``up``, ``jammer``, ``status``, ``record``, ``replay`` and ``router`` to
+    ``jamnav``'s sub-parsers."""
     up = commands.add_parser("up", help="run the system: router, world, cloud, one agent per UAV")
     add_bus_arguments(up)
     up.add_argument("--scenario", default=None, metavar="NAME|PATH")
@@ -265,16 +398,62 @@ def register(commands) -> None:
     up.add_argument("--secure", action="store_true",
                     help="logins and access rules enforced by the router; fresh credentials "
                          "in DIR/credentials.json unless --credentials names a file")
+    up.add_argument("--routers", type=int, choices=(1, 2), default=1,
+                    help="2: the world and the cloud on one router, the agents on another, "
+                         "the routers linked over TLS with certificates both ways (mTLS; "
+                         "fresh ones in DIR/tls)")
+    up.add_argument("--agent-endpoint", default=None, metavar="ENDPOINT",
+                    help="--routers 2: the agents' router (default: --endpoint's port + 1)")
+    up.add_argument("--link-endpoint", default=None, metavar="ENDPOINT",
+                    help="--routers 2: where the first router awaits the second, tls/HOST:PORT "
+                         "(default: --endpoint's port + 2)")
+    up.add_argument("--record", default=None, metavar="FILE.mcap",
+                    help="record every message of the run to an MCAP file (`jamnav replay`, "
+                         "Foxglove)")
+    web = up.add_mutually_exclusive_group()
+    web.add_argument("--web", default=None, metavar="HOST:PORT",
+                     help="where the console serves its page (default 127.0.0.1:8470, or a "
+                          "free port if another system holds it)")
+    web.add_argument("--no-web", action="store_true", help="no console")
     up.set_defaults(handler=_guarded(cmd_up))
+
+    console = commands.add_parser("console", help="the operator's console in a browser, "
+                                                  "against a running system")
+    add_bus_arguments(console)
+    console.add_argument("--scenario", default=None, metavar="NAME|PATH")
+    console.add_argument("--web", default=None, metavar="HOST:PORT",
+                         help="where to serve the page (default 127.0.0.1:8470, or a free "
+                              "port if that one is taken)")
+    console.add_argument("--token-file", default=None, metavar="FILE",
+                         help="with --credentials: the token the page and the API demand, "
+                              "made there if absent (default: console_token beside the "
+                              "credentials file)")
+    console.set_defaults(handler=_guarded(cmd_console))
+
+    record = commands.add_parser("record", help="record a running system's messages to MCAP")
+    add_bus_arguments(record)
+    record.add_argument("--out", required=True, metavar="FILE.mcap")
+    record.add_argument("--duration", type=float, default=None, metavar="SEC",
+                        help="stop after SEC seconds (default: on Ctrl-C)")
+    record.set_defaults(handler=_guarded(cmd_record))
+
+    replay = commands.add_parser("replay", help="publish a recording again on a router")
+    replay.add_argument("file", metavar="FILE.mcap")
+    replay.add_argument("--endpoint", default=None,
+                        help=f"the router to publish on (default ${ENDPOINT_ENV} or "
+                             f"{DEFAULT_ENDPOINT}; a replay starts none)")
+    replay.add_argument("--prefix", default=None,
+                        help="publish under this prefix (default: the recorded one)")
+    replay.add_argument("--speed", type=float, default=1.0,
+                        help="times the recorded pace (default 1)")
+    replay.set_defaults(handler=_guarded(cmd_replay))
 
     jammer = commands.add_parser("jammer", help="move, switch off or show the running jammer")
     jammer_commands = jammer.add_subparsers(dest="jammer_command", required=True)
     jam_set = jammer_commands.add_parser("set", help="place the jammer (applied between steps)")
-    jam_set.add_argument("--x", type=float, required=True, help="metres")
-    jam_set.add_argument("--y", type=float, required=True, help="metres")
-    jam_set.add_argument("--power", type=float, required=True, help="nominal watts")
-    jam_set.add_argument("--height", type=float, default=None,
-                         help="metres (default: the scenario's)")
+    jam_set.add_argument("jammer", metavar="X,Y,P[,H]",
+                         help="position (m), nominal power (W) and height (m, default: the "
+                              "scenario's), as every command takes a jammer; e.g. -25,15,1")
     jammer_commands.add_parser("off", help="switch the jammer off")
     jammer_commands.add_parser("show", help="the jammer in force")
     for sub in jammer_commands.choices.values():
@@ -294,6 +473,9 @@ def register(commands) -> None:
                         help="another endpoint to listen on, e.g. tls/0.0.0.0:7448 for the "
                              "routers of other hosts (repeatable)")
     router.add_argument("--id", default="0", help="name in `jamnav status`")
+    router.add_argument("--roles", default=None, metavar="ROLE,...",
+                        help="with --credentials: accept only these roles' logins (shell "
+                             "patterns, e.g. 'agent-*'; default: every role of the file)")
     router.add_argument("--zenoh-config", default=None, metavar="FILE",
                         help="zenoh configuration to start from, e.g. TLS certificates for "
                              "links between hosts (README, Security)")

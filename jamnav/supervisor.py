@@ -1,10 +1,13 @@
 """``jamnav up``: the whole system as separate OS processes on one machine.
 
-Starts a zenoh router, the cloud, the world and one agent per UAV with ``subprocess`` (the
+Starts a zenoh router (or two linked over mTLS: the world and the cloud on the first, the
+agents on the second), the cloud, the world and one agent per UAV with ``subprocess`` (the
 child execs at once: no child ever runs on a copy of our open zenoh session, which would hang),
 follows them over the bus (liveliness, events, world state), shows live progress on stderr,
-restarts a child that dies, and stops everything at the end or on Ctrl-C / SIGTERM: children
-first with SIGTERM (they close their sessions), SIGKILL for stragglers, the router last.
+restarts a child that dies, and stops everything at the end or on Ctrl-C / SIGTERM, in an
+order that stores every measurement taken: the world (no new measurements), the agents once
+their outboxes are in the cloud, the cloud, the routers last; each with SIGTERM (they close
+their sessions), SIGKILL for stragglers.
 Children run in their own process group, so a Ctrl-C in the terminal reaches only the
 supervisor, and each child stops by itself if the supervisor disappears. The run directory
 receives the children's logs, the report JSON and the figures.
@@ -26,10 +29,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
+import numpy as np
 import zenoh
 
 from cloud_service.sinr_memory import RUN_DIR_FILE
-from shared import access, bus
+from jamnav.console.listen import TOKEN_FILE, WebAddress, new_token
+from shared import access, bus, tls
 from shared.messages import (
     JammerCommand,
     JammerEstimate,
@@ -45,14 +50,19 @@ from shared.messages import (
 )
 from shared.outcomes import FINAL_OUTCOMES
 from shared.scenario import Scenario
+from shared.shipped import value_net_name
 from shared.topics import Topics
 from world_sim.process import initial_jammer, jammer_params
 
 ROOT = Path(__file__).resolve().parent.parent
 STOP_GRACE_S = 10.0
+# A child that dies more than RESTART_LIMIT times in a row, each within STEADY_S of its start,
+# would die again: the supervisor gives up. One that ran a while is restarted however often.
 RESTART_LIMIT = 5
+STEADY_S = 10.0
 STATUS_EVERY_S = 2.0
 FLUSH_WAIT_S = 5.0
+OUTBOX_DIR = "outbox"  # in the run directory: one file per UAV, which outlives its agent
 
 
 @dataclass
@@ -80,6 +90,12 @@ class UpConfig:
     command: str = "jamnav up"
     secure: bool = False  # logins and access rules enforced by the router
     credentials: Path | None = None  # secure: this file, else fresh ones in run_dir
+    routers: int = 1  # 2: the agents on a router of their own, linked to the first over mTLS
+    agent_endpoint: str | None = None  # routers=2: the agents' router
+    link_endpoint: str | None = None  # routers=2: TLS, where the first router awaits the second
+    durable_outboxes: bool = True  # agents keep their outboxes in run_dir too (else memory)
+    record: Path | None = None  # MCAP file of every message (a restarted recorder: FILE.N.mcap)
+    web: WebAddress | None = None  # where the console serves its page (None: no console)
 
 
 @dataclass
@@ -89,17 +105,32 @@ class Child:
     log_path: Path
     process: subprocess.Popen | None = None
     restarts: int = 0
+    started: float = 0.0  # time.monotonic() of the last launch
+    quick_deaths: int = 0  # in a row, each within STEADY_S of its start
 
     @property
     def name(self) -> str:
-        return self.role if self.role in ("router", "world", "cloud") else f"agent-{self.ident}"
+        return self.role if self.role in ("world", "cloud") else f"{self.role}-{self.ident}"
 
 
-def check_endpoint_free(endpoint: str) -> None:
-    """Refuse to start a second router on a port in use (another ``jamnav up``?)."""
+# Whose logins each router of a two-router system accepts (``jamnav router --roles``).
+ROUTER_ROLES = (f"{access.OPERATOR},{access.WORLD},{access.CLOUD}", "agent-*")
+LINK_DIR = "tls"  # in the run directory: the routers' certificates and TLS settings
+
+
+def next_endpoint(endpoint: str, step: int, protocol: str | None = None) -> str:
+    """``endpoint`` ``step`` ports up (with another ``protocol``): where the second router and
+    the link between the routers listen unless told."""
     proto, _, address = endpoint.partition("/")
     host, _, port = address.rpartition(":")
-    if proto != "tcp" or not port.isdigit():
+    return f"{protocol or proto}/{host}:{int(port) + step}"
+
+
+def check_endpoint_free(endpoint: str, option: str = "--endpoint") -> None:
+    """Refuse to start a router on a port in use (another ``jamnav up``?)."""
+    proto, _, address = endpoint.partition("/")
+    host, _, port = address.rpartition(":")
+    if proto not in ("tcp", "tls") or not port.isdigit():
         return
     with socket.socket(socket.AF_INET6 if ":" in host.strip("[]") else socket.AF_INET) as probe:
         # As a listener binds: connections of a previous run in TIME_WAIT do not count.
@@ -108,7 +139,7 @@ def check_endpoint_free(endpoint: str) -> None:
             probe.bind((host.strip("[]"), int(port)))
         except OSError as exc:
             raise ValueError(f"{endpoint} is in use ({exc.strerror}): is another system "
-                             "running? choose --endpoint") from None
+                             f"running? choose {option}") from None
 
 
 class Supervisor:
@@ -127,6 +158,7 @@ class Supervisor:
         self.events: list[dict[str, Any]] = []
         self.outcomes: dict[int, list[str]] = {}
         self.trajectories: dict[int, list[list[tuple[float, float]]]] = {}
+        self.destinations: dict[int, list[tuple[float, float]]] = {}
         self.state: WorldState | None = None
         self.first_step: float | None = None
         self.finished: dict[str, Any] | None = None
@@ -139,19 +171,45 @@ class Supervisor:
         self.dropped = bus.Dropped(bus.setup_logging("supervisor"))
         self.credentials_path = (config.credentials or config.run_dir / access.CREDENTIALS_FILE
                                  ) if config.secure else None
+        self.link_files: dict[str, tls.RouterCertificate] = {}
         self._last_status = 0.0
         self._last_draw = 0.0
 
     # -- children ---------------------------------------------------------------------------
+    def _router_argv(self, ident: int) -> list[str]:
+        """With two routers, router 0 serves the supervisor, the world and the cloud and
+        awaits router 1 on the TLS link; router 1 serves the agents and links to router 0."""
+        c = self.config
+        argv = ["--prefix", c.prefix, "--id", str(ident)]
+        if c.routers == 1:
+            argv += ["--endpoint", c.endpoint]
+        else:
+            link = ["--listen" if ident == 0 else "--connect", c.link_endpoint]
+            argv += ["--endpoint", c.endpoint if ident == 0 else c.agent_endpoint, *link,
+                     "--zenoh-config", str(self.link_files[str(ident)].zenoh_config)]
+        if self.credentials_path is not None:
+            argv += ["--credentials", str(self.credentials_path)]
+            if c.routers > 1:
+                argv += ["--roles", ROUTER_ROLES[ident]]
+        return argv
+
     def _argv(self, child: Child) -> list[str]:
         c, python = self.config, [sys.executable, "-m"]
-        common = ["--endpoint", c.endpoint, "--prefix", c.prefix]
+        if child.role == "router":
+            return python + ["jamnav.cli", "router", *self._router_argv(child.ident)]
+        if child.role == "recorder":
+            return python + ["jamnav.cli", "record", "--endpoint", c.endpoint, "--prefix",
+                             c.prefix, "--out", str(recording_path(c.record, child.restarts))]
+        endpoint = c.agent_endpoint if child.role == "agent" and c.routers > 1 else c.endpoint
+        common = ["--endpoint", endpoint, "--prefix", c.prefix]
         if self.credentials_path is not None:
             common += ["--credentials", str(self.credentials_path)]
-        if child.role == "router":
-            return python + ["jamnav.cli", "router", *common]
         if c.scenario:
             common += ["--scenario", c.scenario]
+        if child.role == "console":
+            token = [] if self.credentials_path is None else [
+                "--token-file", str(c.run_dir / TOKEN_FILE)]
+            return python + ["jamnav.cli", "console", *common, "--web", c.web.text, *token]
         jammer = ["--no-jammer"] if self.jammer is None else [
             "--jammer", f"{self.jammer.x!r},{self.jammer.y!r},{self.jammer.power_w!r},"
                         f"{self.jammer.height_m!r}"]
@@ -164,7 +222,8 @@ class Supervisor:
                 argv += ["--value-net", str(c.model.resolve())]
             return argv
         if child.role == "agent":
-            return python + ["uav_agent.process", *common, "--uav", str(child.ident)]
+            outbox = ["--outbox-dir", str(c.run_dir / OUTBOX_DIR)] if c.durable_outboxes else []
+            return python + ["uav_agent.process", *common, "--uav", str(child.ident), *outbox]
         # A restarted world carries on after the last finished episode, with the jammer in force.
         done = len(self.outcomes)
         argv = python + ["world_sim.process", *common, "--uavs", str(c.uavs), "--seed",
@@ -184,12 +243,41 @@ class Supervisor:
             child.process = subprocess.Popen(
                 self._argv(child), stdin=subprocess.DEVNULL, stdout=log, stderr=log, env=env,
                 start_new_session=True)
+        child.started = time.monotonic()
         self.launched.append({"role": child.role, "id": child.ident, "pid": child.process.pid})
 
     def _start(self, role: str, ident: int = 0) -> None:
         child = Child(role, ident, self.config.run_dir / "logs" / f"{role}-{ident}.log")
         self.children[child.name] = child
         self._launch(child)
+
+    def _start_recorder(self) -> None:
+        """Start the recorder and wait until its subscription is in (its liveliness token
+        says so), so that the file holds the run from its first message. A recorder that
+        does not come up is the main loop's to restart or give up on."""
+        self._start("recorder")
+        process = self.children["recorder-0"].process
+        deadline = time.monotonic() + bus.CONNECT_TIMEOUT_MS / 1000
+        while process.poll() is None and time.monotonic() < deadline:
+            with self._live_lock:
+                if f"recorder-{process.pid}" in self.live:
+                    return
+            time.sleep(0.02)
+
+    def _start_console(self) -> None:
+        """The console, and its URL, printed once it listens: on a secure system the URL
+        holds the token that the page and the API demand (fresh for each run, kept in the
+        run directory). A console that does not come up is the main loop's to restart."""
+        c = self.config
+        token = None if self.credentials_path is None else new_token(c.run_dir / TOKEN_FILE)
+        self._start("console")
+        process = self.children["console-0"].process
+        deadline = time.monotonic() + bus.CONNECT_TIMEOUT_MS / 1000
+        while (process.poll() is None and time.monotonic() < deadline
+               and not c.web.accepting()):
+            time.sleep(0.05)
+        moved = f" (port {c.web.taken_default} is in use)" if c.web.taken_default else ""
+        self._say(f"console: {c.web.url(token)}{moved}")
 
     def _check_children(self) -> bool:
         """Restart children that died; False once one keeps dying."""
@@ -200,9 +288,12 @@ class Supervisor:
             if code == 2:  # the child refused its arguments: restarting would not help
                 self._say(f"{child.name} refused to start, see {child.log_path}")
                 return False
-            if child.restarts >= RESTART_LIMIT:
-                self._say(f"{child.name} died {child.restarts + 1} times (exit {code}); "
-                          f"giving up, see {child.log_path}")
+            quick = time.monotonic() - child.started < STEADY_S
+            child.quick_deaths = child.quick_deaths + 1 if quick else 0
+            if child.quick_deaths > RESTART_LIMIT:
+                self._say(f"{child.name} died {child.quick_deaths} times in a row, each within "
+                          f"{STEADY_S:g} s of its start (exit {code}); giving up, see "
+                          f"{child.log_path}")
                 return False
             if child.role == "world" and self.config.episodes is not None and (
                     len(self.outcomes) >= self.config.episodes):
@@ -261,6 +352,7 @@ class Supervisor:
             self.first_step = time.monotonic()
         self.state = state
         self.trajectories.setdefault(state.episode, []).append(state.position)
+        self.destinations.setdefault(state.episode, state.destination)
 
     def _record_event(self, event) -> None:
         record = event.model_dump(mode="json")
@@ -273,24 +365,8 @@ class Supervisor:
             return
         if event.type == "jammer_changed":
             self.jammer = event.jammer
-            what = "off" if event.jammer is None else (
-                f"({event.jammer.x:g}, {event.jammer.y:g}) {event.jammer.power_w:g} W")
-            self._say(f"jammer changed to {what} (episode {event.episode}, step {event.step})")
-        elif event.type == "change_detected":
-            self._say(f"jammer change detected by the cloud (map v{event.version} right on "
-                      f"{event.accuracy:.0%} of recent uploads)")
-        elif event.type == "jammer_estimated":
-            self._say(f"jammer estimated with map v{event.estimate.map_version}: "
-                      f"{describe_estimate(event.estimate)}")
-        elif event.type == "weights_refused":
-            self._say(f"agent {event.uav} refused {event.weights} weights "
-                      f"v{event.version if event.version is not None else '?'} "
-                      f"({event.reason}); flying on v{event.flying_on}")
-        elif event.type == "sinr_weights_published":
-            self._say(f"SINR map v{event.version} published (held-out accuracy "
-                      f"{event.accuracy:.1%})")
-        else:
-            self._say(f"{event.type}: {record}")
+        if (text := describe_event(record)) is not None:
+            self._say(text)
 
     def _poll_status(self, session: zenoh.Session) -> None:
         if time.monotonic() - self._last_status < STATUS_EVERY_S:
@@ -364,7 +440,7 @@ class Supervisor:
         self._last_draw = now
         with self._live_lock:
             live = len(self.live)
-        expected = self.config.uavs + 3
+        expected = self.config.uavs + 2 + self.config.routers + (self.config.record is not None)
         if self.state is None:
             line = f"starting: {live}/{expected} processes live"
         else:
@@ -388,24 +464,35 @@ class Supervisor:
         # The cloud's memory persists in the run directory: a rerun in the same directory
         # starts with what earlier runs stored.
         self.memory_existed = (c.run_dir / RUN_DIR_FILE).exists()
+        if self.memory_existed:
+            self._say(f"the cloud goes on with the memory of earlier runs in {c.run_dir}; "
+                      "a new --run-dir starts afresh")
         (c.run_dir / "logs").mkdir(parents=True, exist_ok=True)
         previous = {sig: signal.signal(sig, lambda *_: self.stop.set())
                     for sig in (signal.SIGINT, signal.SIGTERM)}
         statuses: list[ProcessStatus] = []
         login = self._operator_login()
+        self._make_link_certificates()
         try:
-            self._start("router")
+            for ident in range(c.routers):
+                self._start("router", ident)
             with bus.open_session("client", c.endpoint, login=login) as session:
                 self._declared = [
-                    session.declare_subscriber(self.topics.event("*"), self._on_event),
+                    # Outcomes missed while the router restarts come again (the world
+                    # keeps them), once each.
+                    bus.recovering_subscriber(session, self.topics.event("*"), self._on_event),
                     session.declare_subscriber(self.topics.state, self._on_state),
                     session.liveliness().declare_subscriber(self.topics.alive(), self._on_presence,
                                                             history=True),
                 ]
+                if c.record is not None:
+                    self._start_recorder()
                 self._start("cloud")
                 self._start("world")
                 for uav in range(c.uavs):
                     self._start("agent", uav)
+                if c.web is not None:
+                    self._start_console()
                 while not self.stop.is_set():
                     self._drain()
                     if self.finished is not None:
@@ -421,21 +508,29 @@ class Supervisor:
                     self.stopped_by = "signal"
                 time.sleep(0.2)  # the last events of a run in flight
                 self._drain()
-                statuses = self._statuses(session)
-                if self.stopped_by == "end":
-                    statuses = self._uploads_handed_over(session, statuses)
                 if self.interactive:
                     self.stream.write("\n")
                 self._say("stopping")
-                # The world first (no new measurements), then the agents, which hand their
-                # outboxes to the cloud as they stop, then the cloud.
-                for role in ("world", "agent", "cloud"):
-                    self._stop_children((role,))
+                statuses = self._stop_in_order(session)
         finally:
-            self._stop_children(("world", "agent", "cloud", "router"))
+            for role in ("world", "agent", "cloud", "recorder", "console", "router"):
+                self._stop_children((role,))
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
         return self._report(statuses)
+
+    def _stop_in_order(self, session: zenoh.Session) -> list[ProcessStatus]:
+        """Stop the world (no new measurements), wait until the agents have handed their
+        outboxes to the cloud, then stop them and the cloud: every measurement taken is
+        stored, and the statuses taken in between hold the run's final counts. The recorder
+        goes last, with everything the others put."""
+        world = [s for s in self._statuses(session) if s.role == "world"]
+        self._stop_children(("world",))
+        statuses = self._uploads_handed_over(session, self._statuses(session))
+        self._stop_children(("agent",))
+        self._stop_children(("cloud",))
+        self._stop_children(("recorder",))
+        return world + statuses
 
     def _operator_login(self) -> access.Login | None:
         """Secure: the supervisor logs in as the operator; without a given credentials file,
@@ -443,10 +538,25 @@ class Supervisor:
         if self.credentials_path is None:
             return None
         if self.config.credentials is None:
-            access.save(access.generate(self.config.uavs), self.credentials_path)
-        self._say(f"secure: logins and access rules enforced by the router; credentials in "
+            access.save(access.generate(self.config.uavs, linked=self.config.routers > 1),
+                        self.credentials_path)
+        self._say(f"secure: logins and access rules enforced by the routers; credentials in "
                   f"{self.credentials_path} (for jamnav status/jammer --credentials)")
         return access.login_for(self.credentials_path, access.OPERATOR)
+
+    def _make_link_certificates(self) -> None:
+        """Two routers: a fresh authority and a certificate for each, valid for the link's
+        host, with the routers' TLS settings, in the run directory."""
+        c = self.config
+        if c.routers == 1:
+            return
+        host = c.link_endpoint.partition("/")[2].rpartition(":")[0].strip("[]")
+        directory = c.run_dir / LINK_DIR
+        self.link_files = tls.make_router_certificates(
+            directory, ["0", "1"], tuple(dict.fromkeys([*tls.LOOPBACK_NAMES, host])))
+        self._say(f"two routers: world and cloud on {c.endpoint}, agents on "
+                  f"{c.agent_endpoint}, linked over mTLS at {c.link_endpoint} (certificates "
+                  f"in {directory})")
 
     def _report(self, statuses: list[ProcessStatus]) -> dict[str, Any]:
         c = self.config
@@ -459,9 +569,9 @@ class Supervisor:
             dropped.update(status.dropped)
         world = next((s for s in statuses if s.role == "world"), self.world_status)
         details = world.details if world is not None else {}
-        restarts = {role: 0 for role in ("router", "world", "cloud", "agent")}
+        restarts = dict.fromkeys(("router", "world", "cloud", "agent"), 0)
         for child in self.children.values():
-            restarts[child.role] += child.restarts
+            restarts[child.role] = restarts.get(child.role, 0) + child.restarts
         return {
             "command": c.command,
             "run_dir": str(c.run_dir),
@@ -472,11 +582,15 @@ class Supervisor:
             "uavs": c.uavs,
             "seed": c.seed,
             "secure": c.secure,
+            "routers": c.routers,
             "stopped_by": self.stopped_by,
             "processes": self.launched,
+            "model": value_net_name(c.model),
             "episodes": len(outcomes),
             "outcomes": outcomes,
             **rates,
+            "swap": swap_rates(self.events, dict(zip(sorted(self.outcomes), outcomes,
+                                                     strict=True))),
             "steps_per_second": (self.finished or details).get("steps_per_second"),
             "missed_deadlines": (self.finished or details).get("missed_deadlines"),
             "events": self.events,
@@ -492,10 +606,18 @@ class Supervisor:
         }
 
 
+def recording_path(path: Path, restarts: int) -> Path:
+    """Where the recorder writes: ``path``, and after its n-th restart ``<stem>.<n><suffix>``
+    (the earlier file stays as it was closed)."""
+    return path if restarts == 0 else path.with_name(f"{path.stem}.{restarts}{path.suffix}")
+
+
 def measurement_counts(statuses: list[ProcessStatus]) -> dict[str, int | None]:
-    """Where the UAVs' measurements went: taken by the agents now running, still in their
-    outboxes, dropped from a full outbox, and held by the cloud's memory (which survives a
-    restart of the cloud). An agent restarted after a crash starts its counts afresh."""
+    """Where the UAVs' measurements went: taken by the agents, still in their outboxes,
+    dropped from a full outbox, and held by the cloud's memory (which survives a restart of
+    the cloud). An agent's outbox file keeps its counts, so a restarted agent carries them on,
+    and a rerun in the same run directory counts what earlier runs took, as the memory
+    holds what they stored."""
     agents = [s.details for s in statuses if s.role == "agent"]
     cloud = next((s.details for s in statuses if s.role == "cloud"), None)
     counts: dict[str, int | None] = {
@@ -508,27 +630,94 @@ def measurement_counts(statuses: list[ProcessStatus]) -> dict[str, int | None]:
 
 
 # -- after the run ------------------------------------------------------------------------------
+def swap_rates(events: list[dict[str, Any]], outcomes: dict[int, list[str]]
+               ) -> dict[str, Any] | None:
+    """Success before the jammer first changed and from the episode it changed in on (its
+    UAVs lived through the change); None without a change."""
+    change = next((e for e in events if e["type"] == "jammer_changed"), None)
+    if change is None:
+        return None
+
+    def success(episodes: list[int]) -> dict[str, Any]:
+        labels = [label for k in episodes for label in outcomes[k]]
+        return {"episodes": len(episodes),
+                "success_rate": labels.count("success") / len(labels) if labels else None}
+
+    return {"episode": change["episode"],
+            "before": success([k for k in outcomes if k < change["episode"]]),
+            "after": success([k for k in outcomes if k >= change["episode"]])}
+
+
+def _percent(rate: float | None) -> str:
+    return "-" if rate is None else f"{rate:.1%}"
+
+
 def summary_table(report: dict[str, Any]) -> str:
+    """The run for people: rounded figures, a word where a number is missing."""
     rows = [f"jamnav up: {report['episodes']} episodes x {report['uavs']} UAVs, "
-            f"{report['clock']}, map {report['map']}, stopped by {report['stopped_by']}"]
-    for outcome in FINAL_OUTCOMES:
-        rate = report[f"{outcome.label}_rate"]
-        rows.append(f"  {outcome.label:<14} {'-' if rate is None else f'{rate:6.1%}':>7}")
-    sps = report["steps_per_second"]
-    rows.append(f"  steps/s        {'-' if sps is None else f'{sps:7.0f}'}   missed deadlines "
-                f"{report['missed_deadlines']}")
-    rows.append("  restarts       " + ", ".join(f"{k} {v}" for k, v in report["restarts"].items()))
+            f"{report['clock']}, map {report['map']}, value network {report['model']}, "
+            f"stopped by {report['stopped_by']}"]
+    if report["episodes"] == 0:
+        rows.append("  no episode finished")
+    else:
+        rows.append("  " + ", ".join(f"{o.label} {_percent(report[f'{o.label}_rate'])}"
+                                     for o in FINAL_OUTCOMES))
+    if (swap := report.get("swap")) is not None:
+        rows.append(f"  success        {_percent(swap['before']['success_rate'])} before the "
+                    f"jammer changed ({swap['before']['episodes']} episodes), "
+                    f"{_percent(swap['after']['success_rate'])} from episode {swap['episode']} "
+                    f"on ({swap['after']['episodes']} episodes)")
+    if (sps := report["steps_per_second"]) is not None:
+        missed = report["missed_deadlines"]
+        rows.append(f"  pace           {sps:.0f} steps/s"
+                    + ("" if missed is None else f", {missed} missed deadlines"))
+    restarts = {k: v for k, v in report["restarts"].items() if v}
+    rows.append("  restarts       " + (", ".join(f"{k} {v}" for k, v in restarts.items())
+                                       or "none"))
     dropped = report["dropped_messages"]
     rows.append("  dropped        " + (", ".join(f"{k} {v}" for k, v in dropped.items())
                                        or "none"))
-    m = report["measurements"]
-    earlier = " (with earlier runs')" if m["memory_of_earlier_runs"] else ""
-    rows.append(f"  measurements   {m['taken']} taken, {m['in_memory']} in the cloud's memory"
-                f"{earlier}, "
-                f"{m['buffered']} still buffered, {m['overflowed']} dropped from full outboxes, "
-                f"{m['upload_failures']} uploads retried")
+    rows.append(f"  measurements   {measurement_line(report['measurements'])}")
     rows += [f"  {line}" for line in map_history(report["events"])]
     return "\n".join(rows)
+
+
+def measurement_line(m: dict[str, Any]) -> str:
+    stored = ("the cloud's memory was not reached" if m["in_memory"] is None
+              else f"{m['in_memory']} in the cloud's memory"
+              + (" (with earlier runs')" if m["memory_of_earlier_runs"] else ""))
+    extra = [f"{m[key]} {what}" for key, what in (
+        ("buffered", "still buffered"), ("overflowed", "dropped from full outboxes"),
+        ("upload_failures", "uploads retried")) if m.get(key)]
+    return ", ".join([f"{m['taken']} taken", stored, *extra])
+
+
+def describe_event(event: dict[str, Any]) -> str | None:
+    """One line for people about an event (a message dumped as JSON); None for the outcomes
+    and the end of the run, which the summary counts instead."""
+    kind = event["type"]
+    if kind == "jammer_changed":
+        jammer = event.get("jammer")
+        where = "switched off" if jammer is None else (
+            f"moved to ({jammer['x']:g}, {jammer['y']:g}), {jammer['power_w']:g} W")
+        return f"jammer {where} (episode {event.get('episode')}, step {event.get('step')})"
+    if kind == "change_detected":
+        return (f"change detected: map v{event['version']} right on "
+                f"{event['accuracy']:.0%} of recent uploads")
+    if kind == "jammer_estimated":
+        estimate = JammerEstimate(**event["estimate"])
+        return f"map v{estimate.map_version}, jammer at {describe_estimate(estimate)}"
+    if kind == "sinr_weights_published":
+        accuracy = event.get("accuracy")
+        return f"SINR map v{event['version']} published" + (
+            "" if accuracy is None else f" (held-out accuracy {accuracy:.1%})")
+    if kind == "weights_refused":
+        version = event["version"] if event.get("version") is not None else "?"
+        return (f"agent {event['uav']} refused {event['weights']} weights v{version} "
+                f"({event['reason']}); flying on v{event.get('flying_on')}")
+    if kind == "retrain_failed":
+        return f"retraining map v{event['version']} failed: {event['error']}"
+    return None
 
 
 def map_history(events: list[dict[str, Any]]) -> list[str]:
@@ -539,7 +728,7 @@ def map_history(events: list[dict[str, Any]]) -> list[str]:
 
     def close_run() -> None:
         if len(refinements) > 2:
-            lines.append(f"{'':<23} ... {len(refinements) - 2} refinements ...")
+            lines.append(f"  ... {len(refinements) - 2} refinements ...")
         if len(refinements) > 1:
             lines.append(refinements[-1])
         refinements.clear()
@@ -547,18 +736,15 @@ def map_history(events: list[dict[str, Any]]) -> list[str]:
     for event in events:
         kind = event["type"]
         if kind == "jammer_estimated":
-            estimate = JammerEstimate(**event["estimate"])
-            line = (f"{'map v' + str(estimate.map_version) + ', jammer at':<23} "
-                    f"{describe_estimate(estimate)}")
+            line = describe_event(event)
             if not refinements:
                 lines.append(line)
             refinements.append(line)
         elif kind in ("jammer_changed", "change_detected"):
             close_run()
-            extra = {k: event[k] for k in ("version", "accuracy", "jammer") if k in event}
-            lines.append(f"{kind:<23} {json.dumps(extra)}")
+            lines.append(describe_event(event))
         elif kind == "sinr_weights_published" and not refinements:
-            lines.append(f"{kind:<23} {json.dumps({'version': event['version']})}")
+            lines.append(describe_event(event))
     close_run()
     return lines
 
@@ -566,12 +752,11 @@ def map_history(events: list[dict[str, Any]]) -> list[str]:
 def save_trajectory_figures(report: dict[str, Any], supervisor: Supervisor) -> list[str]:
     """Trajectories over the coverage map in force: the last episode before the jammer was
     swapped and the last episode of the run (or just the last one without a swap)."""
-    import matplotlib.pyplot as plt
-
-    from shared.plots import draw_coverage
+    from shared.plots import save_trajectory_figure
 
     changes = [e for e in report["events"] if e["type"] == "jammer_changed"]
-    done = sorted(supervisor.outcomes)
+    done = [k for k in sorted(supervisor.outcomes)
+            if any(supervisor.trajectories.get(k, [])) and supervisor.destinations.get(k)]
     if not done:
         return []
     panels = []
@@ -587,29 +772,21 @@ def save_trajectory_figures(report: dict[str, Any], supervisor: Supervisor) -> l
         panels.append(("last_episode", done[-1], supervisor.initial_jammer))
     written = []
     for label, episode, jammer in panels:
-        fig, ax = plt.subplots(figsize=(5.6, 5.6))
-        draw_coverage(ax, supervisor.scenario, jammer_params(jammer), resolution=201)
-        path = [p for p in supervisor.trajectories.get(episode, []) if p]
-        if path:
-            for uav, outcome in enumerate(supervisor.outcomes[episode]):
-                xs = [p[uav][0] for p in path]
-                ys = [p[uav][1] for p in path]
-                (line,) = ax.plot(xs, ys, "-", lw=1.6, label=f"UAV {uav}: {outcome}")
-                ax.plot(xs[0], ys[0], "o", color=line.get_color(), ms=5)
-                ax.plot(xs[-1], ys[-1], "*", color=line.get_color(), ms=9)
-        ax.set_title(f"episode {episode} ({label.replace('_', ' ')})\n{ax.get_title()}",
-                     fontsize=9)
-        ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
-        fig.tight_layout()
+        positions = np.array([p for p in supervisor.trajectories[episode] if p], dtype=float)
         out = Path(report["run_dir"]) / f"trajectories_{label}.png"
-        fig.savefig(out, dpi=110)
-        plt.close(fig)
+        save_trajectory_figure(supervisor.scenario, [(
+            f"episode {episode} ({label.replace('_', ' ')})", jammer_params(jammer), positions,
+            np.array(supervisor.destinations[episode], dtype=float),
+            supervisor.outcomes[episode])], out, dpi=110)
         written.append(str(out))
     return written
 
 
 def up(config: UpConfig, scenario: Scenario) -> int:
     check_endpoint_free(config.endpoint)
+    if config.routers > 1:
+        check_endpoint_free(config.agent_endpoint, "--agent-endpoint")
+        check_endpoint_free(config.link_endpoint, "--link-endpoint")
     supervisor = Supervisor(config, scenario)
     report = supervisor.run()
     if config.figures:
@@ -620,6 +797,8 @@ def up(config: UpConfig, scenario: Scenario) -> int:
     print(summary_table(report))
     print(f"report: {path}" + (f", figures: {', '.join(report['figures'])}"
                                if report.get("figures") else ""))
+    if config.record is not None:
+        print(f"recording: {config.record}")
     if supervisor.credentials_path is not None:
         print(f"credentials: {supervisor.credentials_path}")
     return 1 if report["stopped_by"] == "failure" else 0

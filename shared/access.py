@@ -6,6 +6,11 @@ router accepts only the logins of the credentials file and, for each role, exact
 that role needs: only the operator moves the jammer, an agent publishes only its own action and
 uploads only its own measurements, only the world publishes state and observations, only the
 cloud publishes weights. Denied traffic is dropped silently by the router.
+
+A system of linked routers (one per host) spreads its roles over them: each router accepts the
+logins of the roles that connect to it and enforces their rules, and trusts what a linked
+router forwards. A linked router is known by its certificate (``LINKED_ROUTER``, signed by the
+system's own authority: ``shared.tls``), and logs in as ``router`` to the router it connects to.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from fnmatch import fnmatchcase
 from pathlib import Path
 from typing import Any
 
@@ -37,8 +43,10 @@ from shared.messages import (
 from shared.topics import Topics
 
 CREDENTIALS_FILE = "credentials.json"
-OPERATOR, WORLD, CLOUD = "operator", "world", "cloud"
-_ROLE = re.compile(r"^(operator|world|cloud|agent-(0|[1-9][0-9]*))$")
+OPERATOR, WORLD, CLOUD, ROUTER = "operator", "world", "cloud", "router"
+# The common name of every router certificate of a system; only its authority signs one.
+LINKED_ROUTER = "jamnav-router"
+_ROLE = re.compile(r"^(operator|world|cloud|router|agent-(0|[1-9][0-9]*))$")
 _AGENT = re.compile(r"^agent-([0-9]+)$")
 
 
@@ -50,9 +58,11 @@ def agent_role(uav: int) -> str:
     return f"agent-{uav}"
 
 
-def roles(uavs: int) -> list[str]:
-    """Every role of a system of ``uavs`` UAVs."""
-    return [OPERATOR, WORLD, CLOUD, *(agent_role(uav) for uav in range(uavs))]
+def roles(uavs: int, linked: bool = False) -> list[str]:
+    """Every role of a system of ``uavs`` UAVs, with the routers' login if they are
+    ``linked``."""
+    return [OPERATOR, WORLD, CLOUD, *(agent_role(uav) for uav in range(uavs)),
+            *([ROUTER] if linked else [])]
 
 
 class Login(BaseModel):
@@ -89,14 +99,24 @@ class Credentials(RootModel[dict[str, Login]]):
         except KeyError:
             raise AccessError(f"credentials: no login for role {role!r}") from None
 
+    def only(self, patterns: list[str]) -> Credentials:
+        """The logins of the roles that match one of the shell-style ``patterns``
+        (``agent-*``); a pattern that matches no role is a mistake."""
+        for pattern in patterns:
+            if not any(fnmatchcase(role, pattern) for role in self.root):
+                raise AccessError(f"credentials: no role matches {pattern!r}")
+        return Credentials({role: login for role, login in self.root.items()
+                            if any(fnmatchcase(role, pattern) for pattern in patterns)})
 
-def generate(uavs: int) -> Credentials:
-    """Fresh credentials for every role of a system of ``uavs`` UAVs; each user is its role."""
+
+def generate(uavs: int, linked: bool = False) -> Credentials:
+    """Fresh credentials for every role of a system of ``uavs`` UAVs (and its ``linked``
+    routers); each user is its role."""
     return Credentials({role: Login(user=role, password=secrets.token_urlsafe(24))
-                        for role in roles(uavs)})
+                        for role in roles(uavs, linked)})
 
 
-def _write_private(path: Path, text: str) -> None:
+def write_private(path: Path, text: str) -> None:
     """Write ``path`` readable by its owner only, from its creation on: a temporary file made
     with mode 0600 then renamed over the target (a file already there keeps no other mode)."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -111,7 +131,7 @@ def _write_private(path: Path, text: str) -> None:
 
 
 def save(credentials: Credentials, path: Path) -> None:
-    _write_private(path, json.dumps(credentials.model_dump(), indent=2) + "\n")
+    write_private(path, json.dumps(credentials.model_dump(), indent=2) + "\n")
 
 
 def load(path: str | Path, required: list[str] | tuple[str, ...] = ()) -> Credentials:
@@ -175,15 +195,18 @@ def grants(topics: Topics, role: str) -> dict[str, list[str]]:
     ``status/*/*``)."""
     weights = [topics.value_weights, topics.sinr_map]
     every_status = f"{topics.prefix}/status/**"
-    if role == OPERATOR:
-        return {"ask": [topics.jammer_control, every_status],
+    if role == OPERATOR:  # the SINR map too: the console draws the map in service
+        return {"ask": [topics.jammer_control, topics.sinr_map, every_status],
                 "subscribe": [f"{topics.prefix}/event/**", topics.state,
-                              topics.jammer_estimate],
+                              topics.jammer_estimate, topics.sinr_map],
                 "watch": [f"{topics.prefix}/alive/**"]}
     if role == WORLD:
         return {"publish": [topics.observation("*"), topics.state,
                             *_events(topics, JammerChanged, UavOutcomes, RunFinished)],
-                "see_subscribers": [topics.observation("*"), topics.state],
+                # The outcomes go out through a declared publisher (the world keeps them for
+                # a supervisor that missed some): it must see the operator's subscription.
+                "see_subscribers": [topics.observation("*"), topics.state,
+                                    f"{topics.prefix}/event/**"],
                 "subscribe": [topics.action("*")],
                 "serve": [topics.jammer_control, topics.status(WORLD, 0)],
                 "be_asked": [topics.jammer_control, every_status],
@@ -209,12 +232,18 @@ def grants(topics: Topics, role: str) -> dict[str, list[str]]:
             "announce": [topics.alive("agent", uav)]}
 
 
-def access_control(prefix: str, credentials: Credentials) -> dict[str, Any]:
+def access_control(prefix: str, credentials: Credentials, linked: bool = False
+                   ) -> dict[str, Any]:
     """The router's ``access_control`` section: deny by default, and one policy per role of
-    ``credentials`` with the rules of its ``grants``."""
+    ``credentials`` with the rules of its ``grants``. A ``linked`` router lets a router that
+    presents a ``LINKED_ROUTER`` certificate pass anything under the prefix both ways: that
+    router checked its own clients, and this one checks its own. The ``router`` login alone
+    grants nothing."""
     topics = Topics(prefix)
     rules, subjects, policies = [], [], []
     for role, login in credentials.root.items():
+        if role == ROUTER:
+            continue
         ids = []
         for capability, keys in grants(topics, role).items():
             for flow, messages in _CAPABILITIES[capability]:
@@ -223,16 +252,27 @@ def access_control(prefix: str, credentials: Credentials) -> dict[str, Any]:
                               "permission": "allow", "key_exprs": keys})
         subjects.append({"id": role, "usernames": [login.user]})
         policies.append({"id": f"{role}_policy", "subjects": [role], "rules": ids})
+    if linked:
+        every_message = sorted({message for flows in _CAPABILITIES.values()
+                                for _, messages in flows for message in messages})
+        rules.append({"id": "linked_router_relay", "messages": every_message,
+                      "flows": ["ingress", "egress"], "permission": "allow",
+                      "key_exprs": [topics.everything]})
+        subjects.append({"id": "linked_router", "cert_common_names": [LINKED_ROUTER]})
+        policies.append({"id": "linked_router_policy", "subjects": ["linked_router"],
+                         "rules": ["linked_router_relay"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}
 
 
 @dataclass(frozen=True)
 class Guard:
-    """What a router enforces: the logins of ``credentials`` and the rules of ``prefix``."""
+    """What a router enforces: the logins of ``credentials`` and the rules of ``prefix``,
+    relaying for the routers it is ``linked`` with."""
 
     credentials: Credentials
     prefix: str
+    linked: bool = False
 
     @contextmanager
     def zenoh_settings(self) -> Iterator[dict[str, Any]]:
@@ -240,7 +280,8 @@ class Guard:
         the router opens: the file lives in a private directory that is gone afterwards."""
         with tempfile.TemporaryDirectory(prefix="jamnav-logins-") as private:
             logins = Path(private) / "logins"
-            _write_private(logins, "".join(f"{login.user}:{login.password}\n"
-                                           for login in self.credentials.root.values()))
+            write_private(logins, "".join(f"{login.user}:{login.password}\n"
+                                          for login in self.credentials.root.values()))
             yield {"transport/auth/usrpwd/dictionary_file": str(logins),
-                   "access_control": access_control(self.prefix, self.credentials)}
+                   "access_control": access_control(self.prefix, self.credentials,
+                                                    self.linked)}

@@ -12,6 +12,7 @@ import logging
 import os
 import re
 import signal
+import socket
 import sys
 import threading
 import time
@@ -21,6 +22,7 @@ from contextlib import nullcontext
 from typing import Any, Literal, TypeVar
 
 import zenoh
+import zenoh.ext
 
 from shared.access import Guard, Login
 from shared.messages import Message, MessageError, ProcessStatus, decode, encode
@@ -94,10 +96,33 @@ def open_session(mode: Literal["router", "client"], endpoint: str,
         try:
             return zenoh.open(cfg)
         except zenoh.ZError as exc:
-            what = "listen on" if mode == "router" else "reach a router at"
-            # A router refuses a login the way an absent router does: it never answers.
-            refused = f" (or it refused the login of {login.user!r})" if login else ""
-            raise BusError(f"cannot {what} {endpoint}{refused}: {_one_line(exc)}") from None
+            if mode == "router":
+                raise BusError(f"cannot listen on {endpoint}: {_one_line(exc)}") from None
+            raise BusError(_unreachable(endpoint, login, exc)) from None
+
+
+def _unreachable(endpoint: str, login: Login | None, exc: zenoh.ZError) -> str:
+    """Why a client session did not open. A router refuses a login the way an absent router
+    does, by never answering; a port that takes a connection tells the two apart."""
+    if not _listening(endpoint):
+        return f"cannot reach a router at {endpoint}: {_one_line(exc)}"
+    if login is not None:
+        return (f"the router at {endpoint} refused the login of {login.user!r}: check "
+                f"--credentials (the file `jamnav up --secure` wrote for this system)")
+    return (f"the router at {endpoint} did not let this session in: a secure system needs "
+            f"--credentials FILE (`jamnav up --secure` writes RUN_DIR/credentials.json)")
+
+
+def _listening(endpoint: str) -> bool:
+    """Whether something takes a TCP connection at ``endpoint`` (tcp/ and tls/ endpoints)."""
+    found = re.match(r"^(?:tcp|tls)/\[?([^\]]+?)\]?:(\d+)$", endpoint)
+    if found is None:
+        return False
+    try:
+        with socket.create_connection((found.group(1), int(found.group(2))), timeout=0.5):
+            return True
+    except OSError:
+        return False
 
 
 def reliable_publisher(session: zenoh.Session, key: str, express: bool = False
@@ -114,6 +139,32 @@ def publish_event(session: zenoh.Session, topics: Topics, event: Message) -> Non
                 congestion_control=zenoh.CongestionControl.BLOCK)
 
 
+# A put while the router restarts reaches no one. Zenoh's advanced publisher numbers its
+# samples, keeps the last ones and says every second how far it got, so that an advanced
+# subscriber that missed some asks for them again.
+RECOVERY_HEARTBEAT_S = 1.0
+
+
+def recoverable_publisher(session: zenoh.Session, key: str, kept: int
+                          ) -> zenoh.ext.AdvancedPublisher:
+    """A publisher whose last ``kept`` samples a ``recovering_subscriber`` gets even if it
+    missed them; never dropped under congestion."""
+    return zenoh.ext.declare_advanced_publisher(
+        session, key, congestion_control=zenoh.CongestionControl.BLOCK,
+        cache=zenoh.ext.CacheConfig(kept), publisher_detection=True,
+        sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=RECOVERY_HEARTBEAT_S))
+
+
+def recovering_subscriber(session: zenoh.Session, key: str,
+                          callback: Callable[[zenoh.Sample], None]
+                          ) -> zenoh.ext.AdvancedSubscriber:
+    """A subscriber that fetches what it missed of a ``recoverable_publisher``, once each,
+    and takes other publishers' samples as they come."""
+    return zenoh.ext.declare_advanced_subscriber(
+        session, key, callback, history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+        recovery=zenoh.ext.RecoveryConfig(heartbeat=True))
+
+
 # A put sent right when the match becomes known can still be lost (1 of 6 tries); a moment
 # later it never was.
 MATCH_SETTLE_S = 0.05
@@ -123,7 +174,7 @@ def wait_matching(publisher: zenoh.Publisher, timeout: float) -> bool:
     """Wait until someone subscribes to ``publisher``'s key, and a moment more: a put sent
     before the subscription has reached us may be lost."""
     deadline = time.monotonic() + timeout
-    while not publisher.matching_status:
+    while not publisher.matching_status.matching:
         if time.monotonic() >= deadline:
             return False
         time.sleep(0.002)

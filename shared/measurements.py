@@ -16,9 +16,9 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from shared.networks import SinrMapNetwork
 from shared.scenario import Scenario
 
 PER_GBS_FEATURES = ("dx", "dy", "distance", "elevation", "azimuth")
@@ -260,27 +260,16 @@ class SpotFilter:
         return kept
 
 
-_PREDICT_CHUNK = 65_536
-
-
-def predict_probabilities(network: torch.nn.Module,
-                          features: np.ndarray | torch.Tensor) -> np.ndarray:
+def predict_probabilities(network: SinrMapNetwork, features: np.ndarray) -> np.ndarray:
     """Probability of each level (softmax of the logits) for features of shape (..., F):
-    shape (..., levels)."""
-    flat = torch.as_tensor(np.asarray(features, dtype=np.float32))
-    shape = flat.shape[:-1]
-    flat = flat.reshape(-1, flat.shape[-1])
-    out = []
-    # No mode switch: the network has no dropout or batch norm, and the one in service may be
-    # read by several threads at once.
-    with torch.inference_mode():
-        for start in range(0, flat.shape[0], _PREDICT_CHUNK):
-            out.append(torch.softmax(network(flat[start : start + _PREDICT_CHUNK]), -1).numpy())
-    levels = network.levels
-    return (np.concatenate(out) if out else np.zeros((0, levels), np.float32)).reshape(
-        *shape, levels)
+    shape (..., levels), float32."""
+    logits = network(features)
+    logits -= logits.max(axis=-1, keepdims=True)
+    np.exp(logits, out=logits)
+    logits /= logits.sum(axis=-1, keepdims=True)
+    return logits
 
 
-def predict_levels(network: torch.nn.Module, features: np.ndarray | torch.Tensor) -> np.ndarray:
+def predict_levels(network: SinrMapNetwork, features: np.ndarray) -> np.ndarray:
     """Predicted level (the most probable) for features of shape (..., F)."""
     return predict_probabilities(network, features).argmax(-1).astype(np.int64)

@@ -157,6 +157,8 @@ class WorldState(Message):
     sinr_db: list[Finite] = Field(max_length=MAX_UAVS)
     level: list[Level] = Field(max_length=MAX_UAVS)
     status: list[StatusLabel] = Field(max_length=MAX_UAVS)
+    # Where each UAV is headed this episode (empty from a world that does not say).
+    destination: list[XY] = Field(default_factory=list, max_length=MAX_UAVS)
 
 
 # -- measurements and weights -------------------------------------------------------------------
@@ -238,15 +240,26 @@ class JammerInfo(Message):
     @classmethod
     def parse(cls, text: str, default_height: float) -> JammerInfo:
         """From "X,Y,P" or "X,Y,P,H" (metres, watts); ValueError with a one-line reason."""
-        parts = text.split(",")
-        if len(parts) not in (3, 4):
-            raise ValueError(f"jammer {text!r}: expected X,Y,P or X,Y,P,H")
+        x, y, power, height = jammer_numbers(text)
         try:
-            values = [float(part) for part in parts] + [default_height] * (4 - len(parts))
-            return cls(x=values[0], y=values[1], power_w=values[2], height_m=values[3])
-        except (ValueError, ValidationError):
+            return cls(x=x, y=y, power_w=power,
+                       height_m=default_height if height is None else height)
+        except ValidationError:
             raise ValueError(f"jammer {text!r}: expected finite numbers, power and height "
                              ">= 0") from None
+
+
+def jammer_numbers(text: str) -> tuple[float, float, float, float | None]:
+    """"X,Y,P" or "X,Y,P,H" as numbers (H None when left out): the one jammer syntax of every
+    command. ValueError with a one-line reason."""
+    parts = text.split(",")
+    if len(parts) not in (3, 4):
+        raise ValueError(f"jammer {text!r}: expected X,Y,P or X,Y,P,H")
+    try:
+        values = [float(part) for part in parts]
+    except ValueError:
+        raise ValueError(f"jammer {text!r}: expected numbers, e.g. -25,15,1") from None
+    return values[0], values[1], values[2], (values[3] if len(values) == 4 else None)
 
 
 class JammerCommand(Message):

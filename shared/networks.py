@@ -1,113 +1,175 @@
-"""The two networks of the paper and their safetensors format.
+"""The two networks of the paper, their safetensors format, and their forward in numpy.
 
 Value network: standardization, hidden (64, 32, 16) ReLU, tanh output scaled to the reward
 range. SINR-mapping network: standardization, hidden (32, 16, 8) ReLU, logits over levels.
-The standardization statistics are buffers, so they travel with the weights.
+The standardization statistics are tensors like the weights, so they travel with them.
+
+Every decision and every map is computed by the numpy forward here, so a UAV's agent needs
+neither torch nor its memory. Training, in the cloud, builds the same networks as torch
+modules and hands their numpy form to the lookahead.
 
 Weights are stored and sent as safetensors (never pickle) with a JSON card. Loading checks
-the sha256 digest, every tensor's name, shape and dtype, and refuses anything else with a
-one-line ``WeightsError``.
+the sha256 digest, the architecture, every tensor's name, shape and dtype, and refuses anything
+else with a one-line ``WeightsError``.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Mapping
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
-import torch
+import numpy as np
 from safetensors import SafetensorError
-from safetensors.torch import load as load_bytes
-from safetensors.torch import save as save_bytes
-from torch import nn
+from safetensors.numpy import load as load_bytes
+from safetensors.numpy import save as save_bytes
 
 VALUE_HIDDEN = (64, 32, 16)
 SINR_HIDDEN = (32, 16, 8)
+ROWS_PER_PASS = 1024  # the widest layer of a pass, 1024 x 64 float32, fits a core's L2 cache
 
 
 class WeightsError(ValueError):
     """Weights that cannot be used: unreadable, tampered, or of the wrong shape."""
 
 
-class Standardize(nn.Module):
-    def __init__(self, size: int):
-        super().__init__()
-        self.register_buffer("mean", torch.zeros(size))
-        self.register_buffer("std", torch.ones(size))
-
-    def fit(self, samples: torch.Tensor) -> None:
-        """Set the statistics from data; constant inputs keep a unit scale."""
-        self.mean.copy_(samples.mean(dim=0))
-        std = samples.std(dim=0)
-        self.std.copy_(torch.where(std > 1e-6, std, torch.ones_like(std)))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return (x - self.mean) / self.std
+def value_architecture(
+    input_size: int, value_scale: float, method: dict | None = None
+) -> dict[str, Any]:
+    """The card of a value network; ``method`` says how its inputs are built and its lookahead
+    scored (MethodOptions)."""
+    return {"kind": ValueNetwork.kind, "input_size": int(input_size),
+            "value_scale": float(value_scale), "method": dict(method or {})}
 
 
-def _mlp(inputs: int, hidden: tuple[int, ...], outputs: int) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    for width in hidden:
-        layers += [nn.Linear(inputs, width), nn.ReLU()]
-        inputs = width
-    layers.append(nn.Linear(inputs, outputs))
-    return nn.Sequential(*layers)
+def sinr_map_architecture(input_size: int, levels: int) -> dict[str, Any]:
+    return {"kind": SinrMapNetwork.kind, "input_size": int(input_size), "levels": int(levels)}
 
 
-class ValueNetwork(nn.Module):
-    kind = "value"
-
-    def __init__(self, input_size: int, value_scale: float, method: dict | None = None):
-        super().__init__()
-        self.input_size = input_size
-        self.value_scale = value_scale
-        # How the network's inputs are built and its lookahead scored (MethodOptions).
-        self.method = dict(method or {})
-        self.standardize = Standardize(input_size)
-        self.body = _mlp(input_size, VALUE_HIDDEN, 1)
-
-    def forward(self, state: torch.Tensor) -> torch.Tensor:
-        return self.value_scale * torch.tanh(self.body(self.standardize(state))).squeeze(-1)
-
-    def architecture(self) -> dict[str, Any]:
-        return {"kind": self.kind, "input_size": self.input_size,
-                "value_scale": self.value_scale, "method": self.method}
-
-
-class SinrMapNetwork(nn.Module):
-    kind = "sinr_map"
-
-    def __init__(self, input_size: int, levels: int):
-        super().__init__()
-        self.input_size = input_size
-        self.levels = levels
-        self.standardize = Standardize(input_size)
-        self.body = _mlp(input_size, SINR_HIDDEN, levels)
-
-    def forward(self, features: torch.Tensor) -> torch.Tensor:
-        return self.body(self.standardize(features))
-
-    def architecture(self) -> dict[str, Any]:
-        return {"kind": self.kind, "input_size": self.input_size, "levels": self.levels}
-
-
-def build_network(architecture: dict[str, Any]) -> nn.Module:
+def checked_architecture(architecture: Any) -> dict[str, Any]:
+    """A card read from elsewhere, in the form the networks are built from."""
+    if not isinstance(architecture, dict):
+        raise WeightsError(f"architecture description is not a mapping: {architecture!r}")
+    kind = architecture.get("kind")
+    if kind not in (ValueNetwork.kind, SinrMapNetwork.kind):
+        raise WeightsError(f"unknown network kind {kind!r}")
     try:
-        if architecture["kind"] == ValueNetwork.kind:
-            return ValueNetwork(int(architecture["input_size"]),
-                                float(architecture["value_scale"]), architecture.get("method"))
-        if architecture["kind"] == SinrMapNetwork.kind:
-            return SinrMapNetwork(int(architecture["input_size"]), int(architecture["levels"]))
+        if kind == ValueNetwork.kind:
+            checked = value_architecture(architecture["input_size"],
+                                         architecture["value_scale"], architecture.get("method"))
+        else:
+            checked = sinr_map_architecture(architecture["input_size"], architecture["levels"])
     except (KeyError, TypeError, ValueError) as exc:
         raise WeightsError(f"architecture description is incomplete: {exc}") from None
-    raise WeightsError(f"unknown network kind {architecture.get('kind')!r}")
+    if min(layer_widths(checked)) < 1:
+        raise WeightsError(f"architecture {checked} has a layer without units")
+    return checked
 
 
-def to_bytes(network: nn.Module) -> bytes:
+def layer_widths(architecture: dict[str, Any]) -> tuple[int, ...]:
+    """Units from the input through the hidden layers to the output."""
+    if architecture["kind"] == ValueNetwork.kind:
+        return (architecture["input_size"], *VALUE_HIDDEN, 1)
+    return (architecture["input_size"], *SINR_HIDDEN, architecture["levels"])
+
+
+def tensor_shapes(architecture: dict[str, Any]) -> dict[str, tuple[int, ...]]:
+    """Name and shape of every float32 tensor of a network: the names of the torch modules'
+    state (``body.<k>``: the k-th module of a sequence alternating Linear and ReLU)."""
+    widths = layer_widths(architecture)
+    shapes = {"standardize.mean": (widths[0],), "standardize.std": (widths[0],)}
+    for layer, (inputs, outputs) in enumerate(pairwise(widths)):
+        shapes[f"body.{2 * layer}.weight"] = (outputs, inputs)
+        shapes[f"body.{2 * layer}.bias"] = (outputs,)
+    return shapes
+
+
+class Network:
+    """A network's forward in numpy, float32, over the tensors of ``tensor_shapes``.
+
+    The layers read the tensors without copying them: tensors that are views of a torch
+    module's memory follow that module's training steps. Several threads may run one network
+    at once: the forward writes nothing but its own outputs.
+    """
+
+    kind: str
+
+    def __init__(self, architecture: dict[str, Any], tensors: Mapping[str, np.ndarray]):
+        """``architecture`` in the form of ``checked_architecture``; ``tensors`` as it
+        describes them (``from_bytes`` checks both)."""
+        self.card = architecture
+        self.tensors = dict(tensors)
+        self.input_size: int = architecture["input_size"]
+        self._mean = self.tensors["standardize.mean"]
+        self._std = self.tensors["standardize.std"]
+        self._layers = [(self.tensors[f"body.{2 * k}.weight"].T, self.tensors[f"body.{2 * k}.bias"])
+                        for k in range(len(layer_widths(architecture)) - 1)]
+
+    def architecture(self) -> dict[str, Any]:
+        return dict(self.card)
+
+    def outputs(self, inputs: np.ndarray) -> np.ndarray:
+        """The last layer's outputs (..., units) for inputs (..., input_size)."""
+        inputs = np.asarray(inputs)
+        rows = inputs.reshape(-1, self.input_size)
+        last_weight_t, last_bias = self._layers[-1]
+        out = np.empty((len(rows), len(last_bias)), dtype=np.float32)
+        # A pass over a few rows at a time keeps its layers in a core's cache: on the
+        # lookahead's batch (256 UAVs x 46 actions) it halves the time of one pass over all.
+        for start in range(0, len(rows), ROWS_PER_PASS):
+            hidden = np.subtract(rows[start : start + ROWS_PER_PASS], self._mean,
+                                 dtype=np.float32)
+            hidden /= self._std
+            for weight_t, bias in self._layers[:-1]:
+                hidden = hidden @ weight_t
+                hidden += bias
+                np.maximum(hidden, 0.0, out=hidden)
+            chunk = out[start : start + ROWS_PER_PASS]
+            np.matmul(hidden, last_weight_t, out=chunk)
+            chunk += last_bias
+        return out.reshape(inputs.shape[:-1] + (len(last_bias),))
+
+
+class ValueNetwork(Network):
+    kind = "value"
+
+    def __init__(self, architecture: dict[str, Any], tensors: Mapping[str, np.ndarray]):
+        super().__init__(architecture, tensors)
+        self.value_scale: float = architecture["value_scale"]
+        self.method: dict = architecture["method"]
+
+    def __call__(self, states: np.ndarray) -> np.ndarray:
+        """Values (...,) float32 of joint states (..., input_size)."""
+        values = np.tanh(self.outputs(states)[..., 0])
+        values *= self.value_scale
+        return values
+
+
+class SinrMapNetwork(Network):
+    kind = "sinr_map"
+
+    def __init__(self, architecture: dict[str, Any], tensors: Mapping[str, np.ndarray]):
+        super().__init__(architecture, tensors)
+        self.levels: int = architecture["levels"]
+
+    def __call__(self, features: np.ndarray) -> np.ndarray:
+        """Logits (..., levels) float32 of features (..., input_size)."""
+        return self.outputs(features)
+
+
+def build_network(architecture: dict[str, Any], tensors: Mapping[str, np.ndarray]) -> Network:
+    """The network of a card in the form of ``checked_architecture``, over ``tensors``."""
+    kind = ValueNetwork if architecture["kind"] == ValueNetwork.kind else SinrMapNetwork
+    return kind(architecture, tensors)
+
+
+def to_bytes(network: Network) -> bytes:
     """safetensors bytes of the network; the architecture rides in the header metadata."""
-    tensors = {name: t.detach().to("cpu", torch.float32).contiguous()
-               for name, t in network.state_dict().items()}
+    tensors = {name: np.ascontiguousarray(t, dtype=np.float32)
+               for name, t in network.tensors.items()}
     return save_bytes(tensors, metadata={"architecture": json.dumps(network.architecture())})
 
 
@@ -117,7 +179,7 @@ def sha256(data: bytes) -> str:
 
 def from_bytes(
     data: bytes, expected_sha256: str | None = None, expected: dict[str, Any] | None = None
-) -> nn.Module:
+) -> Network:
     """A network from safetensors bytes, after checking digest, names, shapes and dtypes.
 
     ``expected`` pins the architecture (e.g. the input size an agent's features have).
@@ -130,29 +192,26 @@ def from_bytes(
         architecture = json.loads(metadata["architecture"])
     except (SafetensorError, ValueError, KeyError, TypeError) as exc:
         raise WeightsError(f"not a readable safetensors network: {exc}") from None
+    architecture = checked_architecture(architecture)
     if expected is not None:
         mismatched = {k: v for k, v in expected.items() if architecture.get(k) != v}
         if mismatched:
             raise WeightsError(f"architecture {architecture} does not match expected {expected}")
-    network = build_network(architecture)
-    reference = network.state_dict()
+    reference = tensor_shapes(architecture)
     if set(tensors) != set(reference):
         raise WeightsError(
             f"tensor names differ: missing {sorted(set(reference) - set(tensors))}, "
             f"unexpected {sorted(set(tensors) - set(reference))}"
         )
-    for name, tensor in tensors.items():
-        want = reference[name]
-        if tensor.shape != want.shape or tensor.dtype != torch.float32:
+    for name, shape in reference.items():
+        tensor = tensors[name]
+        if tensor.shape != shape or tensor.dtype != np.float32:
             raise WeightsError(
-                f"tensor {name}: {tuple(tensor.shape)} {tensor.dtype}, expected "
-                f"{tuple(want.shape)} torch.float32"
+                f"tensor {name}: {tensor.shape} {tensor.dtype}, expected {shape} float32"
             )
-        if not torch.isfinite(tensor).all():
+        if not np.isfinite(tensor).all():
             raise WeightsError(f"tensor {name} holds NaN or infinite values")
-    network.load_state_dict(tensors)
-    network.eval()
-    return network
+    return build_network(architecture, {name: tensors[name] for name in reference})
 
 
 def _header_metadata(data: bytes) -> dict[str, str]:
@@ -165,7 +224,7 @@ def card_path(weights_path: Path) -> Path:
     return weights_path.with_suffix(".json")
 
 
-def save_network(network: nn.Module, path: Path, card: dict[str, Any]) -> str:
+def save_network(network: Network, path: Path, card: dict[str, Any]) -> str:
     """Write ``path`` (safetensors) and its JSON card beside it; returns the sha256."""
     data = to_bytes(network)
     digest = sha256(data)
@@ -178,7 +237,7 @@ def save_network(network: nn.Module, path: Path, card: dict[str, Any]) -> str:
     return digest
 
 
-def load_network(path: Path, expected: dict[str, Any] | None = None) -> tuple[nn.Module, dict]:
+def load_network(path: Path, expected: dict[str, Any] | None = None) -> tuple[Network, dict]:
     """Load a network and its card; the card's digest must match the file."""
     path = Path(path)
     try:

@@ -1,4 +1,8 @@
-"""Figures in the style of the paper's Fig. 3: coverage in yellow, GBSs green, jammer red."""
+"""Figures in the style of the paper's Fig. 3: coverage in yellow, GBSs green, jammer red.
+
+Colours are from the Okabe-Ito palette, safe for colour-blind readers. The UAVs' colours are
+kept apart from the GBSs' green, the jammer's vermillion and the coverage's yellow, and the
+markers differ in shape as well as colour."""
 
 from __future__ import annotations
 
@@ -10,11 +14,17 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import ListedColormap  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
 
 from shared.radio import JammerParams, RadioModel  # noqa: E402
 from shared.scenario import Scenario  # noqa: E402
 
-_COVERAGE_COLOURS = ListedColormap(["white", "#f5e663"])
+_COVERAGE_COLOURS = ListedColormap(["white", "#f7ec8f"])
+GBS_COLOUR, JAMMER_COLOUR = "#009E73", "#D55E00"
+# One colour per UAV, cycled with a dashed line style past the first eight.
+UAV_COLOURS = ("#0072B2", "#CC79A7", "#000000", "#56B4E9", "#882255", "#332288", "#999933",
+               "#777777")
 
 
 def jammer_title(jammer: JammerParams | None) -> str:
@@ -41,9 +51,10 @@ def draw_coverage(
         interpolation="nearest",
     )
     gbs = radio.gbs_xy
-    ax.plot(gbs[:, 0], gbs[:, 1], "^", color="tab:green", markersize=9, label="GBS")
+    ax.plot(gbs[:, 0], gbs[:, 1], "^", color=GBS_COLOUR, markersize=9, label="GBS")
     if jammer is not None:
-        ax.plot([jammer.x], [jammer.y], "^", color="tab:red", markersize=11, label="jammer")
+        ax.plot([jammer.x], [jammer.y], "*", color=JAMMER_COLOUR, markersize=16, mec="black",
+                mew=0.8, label="jammer")
     ax.set_xlim(area.x_min, area.x_max)
     ax.set_ylim(area.y_min, area.y_max)
     ax.set_aspect("equal")
@@ -92,24 +103,45 @@ def plot_reward_curve(log_csv: Path, out: Path, window: int = 200) -> None:
     plt.close(fig)
 
 
+def draw_trajectories(ax, positions: np.ndarray, destinations: np.ndarray,
+                      outcomes: list[str]) -> None:
+    """Each UAV's path from its start (circle) to where it ended (square), its destination a
+    cross of its colour; ``positions`` (T, J, 2), ``destinations`` (J, 2). The legend sits
+    below the map, where it hides no path."""
+    for uav in range(positions.shape[1]):
+        colour = UAV_COLOURS[uav % len(UAV_COLOURS)]
+        style = "-" if uav < len(UAV_COLOURS) else "--"
+        track = positions[:, uav]
+        ax.plot(track[:, 0], track[:, 1], style, color=colour, lw=1.5,
+                label=f"UAV {uav}: {outcomes[uav]}")
+        ax.plot(*track[0], "o", color=colour, ms=5)
+        ax.plot(*track[-1], "s", color=colour, ms=6, mfc="white", mew=1.5)
+        ax.plot(*destinations[uav], "X", color=colour, ms=10, mec="white", mew=0.8)
+    key = [Line2D([], [], ls="none", marker=m, color="0.3", ms=s, mfc=f, label=label)
+           for m, s, f, label in (("o", 5, "0.3", "start"), ("s", 6, "white", "end"),
+                                  ("X", 9, "0.3", "destination"))]
+    key.append(Patch(facecolor=_COVERAGE_COLOURS(1), edgecolor="0.6", label="covered"))
+    handles, _ = ax.get_legend_handles_labels()
+    ax.legend(handles=handles + key, loc="upper center", bbox_to_anchor=(0.5, -0.13),
+              ncol=3, fontsize=7, frameon=False)
+
+
 def save_trajectory_figure(
     scenario: Scenario,
-    panels: list[tuple[JammerParams | None, np.ndarray, np.ndarray, list[str]]],
+    panels: list[tuple[str, JammerParams | None, np.ndarray, np.ndarray, list[str]]],
     out: Path,
+    dpi: int = 100,
 ) -> None:
-    """The paper's Fig. 3: trajectories (lines with dots) and destinations (crosses) over the
-    coverage map of each jammer setting. ``panels``: (jammer, positions (T, J, 2),
-    destinations (J, 2), outcomes)."""
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 4.8))
-    for ax, (jammer, positions, destinations, outcomes) in zip(np.atleast_1d(axes), panels,
-                                                               strict=True):
+    """Trajectories over the coverage map of each panel's jammer (the paper's Fig. 3).
+    ``panels``: (title, jammer, positions (T, J, 2), destinations (J, 2), outcomes)."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.8 * len(panels), 6.0), squeeze=False)
+    for ax, (title, jammer, positions, destinations, outcomes) in zip(axes[0], panels,
+                                                                      strict=True):
         draw_coverage(ax, scenario, jammer, resolution=201)
-        for uav in range(positions.shape[1]):
-            line = ax.plot(positions[:, uav, 0], positions[:, uav, 1], ".-", markersize=3,
-                           linewidth=1.2, label=f"UAV {uav}: {outcomes[uav]}")[0]
-            ax.plot(*destinations[uav], "x", color=line.get_color(), markersize=9, mew=2)
-        ax.legend(loc="lower left", fontsize=6, framealpha=0.85)
+        draw_trajectories(ax, positions, destinations, outcomes)
+        if title:
+            ax.set_title(f"{title}\n{ax.get_title()}", fontsize=9)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
+    fig.savefig(out, dpi=dpi)
     plt.close(fig)

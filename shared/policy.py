@@ -13,12 +13,11 @@ from collections.abc import Callable
 from typing import NamedTuple, Protocol
 
 import numpy as np
-import torch
 
 from shared.features import MethodOptions, Observation, joint_state, joint_state_size
 from shared.kinematics import ActionSet, closest_approach, velocity_of
 from shared.measurements import predict_levels, scenario_features
-from shared.networks import ValueNetwork, WeightsError
+from shared.networks import SinrMapNetwork, ValueNetwork, WeightsError
 from shared.radio import JammerParams, RadioModel
 from shared.rewards import RewardModel, smallest_gaps
 from shared.routes import RouteGrid
@@ -94,7 +93,7 @@ class LevelRaster:
 
 
 def sinr_network_raster(
-    network: torch.nn.Module, scenario: Scenario, spacing: float = MAP_SPACING_M
+    network: SinrMapNetwork, scenario: Scenario, spacing: float = MAP_SPACING_M
 ) -> LevelRaster:
     """A SINR-mapping network's map sampled on the lookahead's grid."""
     return LevelRaster.sample(
@@ -162,9 +161,7 @@ class Decision(NamedTuple):
 
 
 class LookaheadPolicy:
-    def __init__(
-        self, scenario: Scenario, value_net: ValueNetwork, device: str = "cpu", shield: bool = True
-    ):
+    def __init__(self, scenario: Scenario, value_net: ValueNetwork, shield: bool = True):
         """``shield=False`` flies without the method's safe cells even if it has them: how
         training flies, so the value network learns what a collision costs."""
         self.scenario = scenario
@@ -181,13 +178,10 @@ class LookaheadPolicy:
             raise WeightsError(f"value network reads {value_net.input_size} features, this "
                                f"scenario gives {wanted}")
         self.disconnection_limit = scenario.timing.disconnection_limit_steps
-        self.device = torch.device(device)
-        self.value_net = value_net.to(self.device).eval()
+        self.value_net = value_net
 
     def values(self, states: np.ndarray) -> np.ndarray:
-        with torch.inference_mode():
-            tensor = torch.from_numpy(states).to(self.device)
-            return self.value_net(tensor).cpu().numpy().astype(np.float64)
+        return self.value_net(states).astype(np.float64)
 
     def _margins(self, observation: Observation) -> np.ndarray:
         """The safety margin kept to each other UAV (N, M): the method's margin, or less than

@@ -16,13 +16,14 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from shared.shadowing import MAX_GRID_SIDE, field_grid
+from shared.shipped import shipped_dir
 
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover - exercised only on Python 3.10
     import tomli as tomllib
 
-SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+SCENARIO_DIR = shipped_dir("scenarios")
 DEFAULT_SCENARIO = "icc2021"
 
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]

@@ -1,10 +1,20 @@
-"""Where the shipped default weights live (``models/``, trained by the project's commands)."""
+"""Where the shipped files live: the scenario files and the default weights (``models/``,
+trained by the project's commands)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+
+def shipped_dir(name: str) -> Path:
+    """The repository's top-level ``name/`` (``scenarios``, ``models``): in an installed copy
+    the package data inside ``shared`` (pyproject.toml puts it there), else the checkout's own
+    directory (an editable install, or a checkout that shadows an installed copy)."""
+    installed = Path(__file__).resolve().parent / name
+    return installed if installed.is_dir() else installed.parent.parent / name
+
+
+MODELS_DIR = shipped_dir("models")
 VALUE_NET = MODELS_DIR / "value_net.safetensors"  # the paper's method
 EXTENDED_VALUE_NET = MODELS_DIR / "value_net_extended.safetensors"
 SINR_MAP_NO_JAMMER = MODELS_DIR / "sinr_map_no_jammer.safetensors"
@@ -29,3 +39,13 @@ VALUE_NET_HELP = ("value network: a shipped one by name (extended, the default a
 def value_net_path(name_or_path: str | Path) -> Path:
     """A shipped value network by name, or the path given."""
     return VALUE_NETS.get(str(name_or_path), Path(name_or_path))
+
+
+def value_net_name(path: Path | None) -> str:
+    """How people know a value network: a shipped one by its name, another by its path
+    (None: the default)."""
+    if path is None:
+        return DEFAULT_VALUE_NET
+    resolved = Path(path).resolve()
+    return next((name for name, shipped in VALUE_NETS.items() if shipped.resolve() == resolved),
+                str(path))

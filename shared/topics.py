@@ -33,6 +33,15 @@ def endpoint_from(given: str | None = None) -> str:
     return endpoint
 
 
+class ArgumentParser(argparse.ArgumentParser):
+    """Reads "-12.5,-33" as a value, not an option: coordinates are often negative, and the
+    supervisor hands them on to its children as they were given."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-\.?\d[\d.,eE+-]*$")
+
+
 def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
     """--endpoint, --prefix and --credentials: how every command and process finds its
     system and, on a secure one, logs in."""

@@ -35,12 +35,14 @@ def variant(base: Scenario, **sections) -> Scenario:
 
 @pytest.fixture
 def supervisor():
-    """Start ``jamnav up`` in the background; whatever happens, stop it and its children."""
+    """Start ``jamnav up`` in the background; whatever happens, stop it and its children.
+    Without the web console unless ``web`` (tests/test_console_browser.py runs it)."""
     root = Path(__file__).resolve().parent.parent
     started: list[subprocess.Popen] = []
 
-    def start(*argv: str, **kwargs) -> subprocess.Popen:
+    def start(*argv: str, web: bool = False, **kwargs) -> subprocess.Popen:
         env = dict(os.environ, PYTHONPATH=str(root))
+        argv = argv if web else (*argv, "--no-web")
         process = subprocess.Popen([sys.executable, "-m", "jamnav.cli", "up", *argv], env=env,
                                    cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                    text=True, **kwargs)

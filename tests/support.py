@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import socket
+import subprocess
 import threading
 import time
 from collections.abc import Iterator
@@ -19,6 +20,7 @@ from shared.messages import (
     JammerInfo,
     JammerReply,
     MessageError,
+    ProcessStatus,
     decode,
     decode_event,
 )
@@ -133,3 +135,39 @@ def running(scenario, tmp_path, *, mode: str, uavs: int, jammer: JammerInfo | No
             session.close()
         router.close()
     assert not any(thread.is_alive() for thread in threads)
+
+
+def statuses(session, topics: Topics, timeout: float = 5.0) -> dict[str, ProcessStatus]:
+    """Every live process's status reply, by name: ``world-0``, ``cloud-0``, ``agent-1``..."""
+    found = {}
+    for reply in session.get(topics.status(), timeout=timeout):
+        if reply.ok is not None:
+            status = decode(ProcessStatus, reply.ok.payload.to_bytes())
+            found[f"{status.role}-{status.ident}"] = status
+    return found
+
+
+class Drained:
+    """What a process started with stdout and stderr pipes writes, read as it comes: a
+    process that writes more than a pipe holds would otherwise stall until someone reads."""
+
+    def __init__(self, process: subprocess.Popen):
+        self.process = process
+        self._parts: dict[str, list[str]] = {"out": [], "err": []}
+        self._readers = [threading.Thread(target=self._read, args=(pipe, self._parts[name]),
+                                          daemon=True)
+                         for name, pipe in (("out", process.stdout), ("err", process.stderr))]
+        for reader in self._readers:
+            reader.start()
+
+    @staticmethod
+    def _read(pipe, parts: list[str]) -> None:
+        for line in pipe:
+            parts.append(line)
+
+    def wait(self, timeout: float) -> tuple[str, str]:
+        """Wait for the process to exit; what it wrote to stdout and to stderr."""
+        self.process.wait(timeout)
+        for reader in self._readers:
+            reader.join(timeout)
+        return "".join(self._parts["out"]), "".join(self._parts["err"])

@@ -168,15 +168,19 @@ def test_the_report_shows_a_run_of_refinements_as_its_first_and_last_map():
         return {"type": "jammer_estimated", "estimate": _estimate(map_version=version, x=x)
                 .model_dump()}
 
-    published = [{"type": "sinr_weights_published", "version": v} for v in range(1, 5)]
-    events = [{"type": "jammer_changed", "jammer": None}, {"type": "change_detected",
-                                                            "version": 0, "accuracy": 0.8}]
+    published = [{"type": "sinr_weights_published", "version": v, "accuracy": 0.9}
+                 for v in range(1, 5)]
+    events = [{"type": "jammer_changed", "jammer": {"x": -25.0, "y": 15.0, "power_w": 1.0},
+               "episode": 3, "step": 40},
+              {"type": "change_detected", "version": 0, "accuracy": 0.8123456789}]
     for version, x in ((1, 20.0), (2, 22.0), (3, 23.5), (4, 24.0)):
         events += [estimated(version, x), published[version - 1]]
     lines = map_history(events)
-    assert len(lines) == 5 and lines[0].startswith("jammer_changed")
+    assert lines[:2] == ["jammer moved to (-25, 15), 1 W (episode 3, step 40)",
+                         "change detected: map v0 right on 81% of recent uploads"]
+    assert len(lines) == 5
     assert lines[2].startswith("map v1, jammer at") and "(20.0 +- 1.5" in lines[2]
     assert "2 refinements" in lines[3] and lines[4].startswith("map v4") and "(24.0" in lines[4]
     # A map published without an estimate (the DNN alone) is listed as such.
-    assert map_history([{"type": "sinr_weights_published", "version": 7}]) == [
-        'sinr_weights_published  {"version": 7}']
+    assert map_history([{"type": "sinr_weights_published", "version": 7, "accuracy": None}]
+                       ) == ["SINR map v7 published"]

@@ -9,9 +9,9 @@ import json
 import math
 
 import msgpack
+import numpy as np
 import pytest
 import torch
-from support import running, wait_until
 
 from cloud_service.sinr_mapping import RetrainConfig
 from jamnav.cli import main as jamnav
@@ -25,6 +25,7 @@ from shared.messages import (
 )
 from shared.networks import load_network, save_bytes, sha256
 from shared.shipped import VALUE_NET
+from tests.support import running, wait_until
 
 torch.set_num_threads(1)
 
@@ -136,7 +137,7 @@ def test_an_agent_refuses_bad_weights_flies_on_with_the_old_ones_and_reports_it(
         system.wait_for("uav_outcomes", 60)
         agent, session = system.agents[0], system.sessions[0]
         served = load_network(VALUE_NET)[0]
-        good = {name: t.detach().clone() for name, t in served.state_dict().items()}
+        good = served.tensors
         metadata = {"architecture": json.dumps(served.architecture())}
         first = next(iter(good))
 
@@ -148,9 +149,9 @@ def test_an_agent_refuses_bad_weights_flies_on_with_the_old_ones_and_reports_it(
         tampered["data"] = tampered["data"][:-1] + b"\x00"  # one byte altered in transit
         session.put(system.topics.value_weights, msgpack.packb(tampered))
         session.put(system.topics.value_weights,
-                    payload({**good, first: torch.cat([good[first], good[first][:1]])}, 8))
+                    payload({**good, first: np.concatenate([good[first], good[first][:1]])}, 8))
         session.put(system.topics.value_weights,
-                    payload({**good, first: good[first].double()}, 9))  # wrong dtype
+                    payload({**good, first: good[first].astype(np.float64)}, 9))  # wrong dtype
         wait_until(lambda: len(system.of_type("weights_refused")) == 3, 20)
         decisions = agent.decisions
         wait_until(lambda: agent.decisions > decisions + 20, 20)  # still flying

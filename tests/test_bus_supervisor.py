@@ -10,7 +10,6 @@ import signal
 from pathlib import Path
 
 import pytest
-from support import free_endpoint, gone, wait_until
 
 from cloud_service.evaluation import evaluate
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
@@ -18,6 +17,7 @@ from jamnav.cli import main as jamnav
 from shared.measurements import MeasurementSpec
 from shared.scenario import load_scenario, resolve_scenario_path
 from shared.shipped import value_net_path
+from tests.support import free_endpoint, gone, wait_until
 
 
 def run_json(capsys, *argv: str):
@@ -76,16 +76,15 @@ def test_a_running_system_is_controlled_restarts_a_dead_agent_and_stops_on_ctrl_
     # Meanwhile the world flew UAV 1 on its last velocity, and counted the steps.
     assert world["details"]["unattended_steps"] > 0
 
-    code, out, err = run_json(capsys, "jammer", "set", "--x", "500", "--y", "0", "--power", "1",
+    code, out, err = run_json(capsys, "jammer", "set", "500,0,1",
                               "--endpoint", endpoint)
     assert code == 2 and "outside the area" in err and err.count("\n") == 1
     assert json.loads(out)["accepted"] is False
-    code, _, err = run_json(capsys, "jammer", "set", "--x", "0", "--y", "0", "--power", "nan",
+    code, _, err = run_json(capsys, "jammer", "set", "0,0,nan",
                             "--endpoint", endpoint)
     assert code == 2 and err.count("\n") == 1
-    code, out, _ = run_json(capsys, "jammer", "set", "--x", "25", "--y", "-10", "--power",
-                            "0.5", "--endpoint", endpoint)
-    assert code == 0 and json.loads(out)["jammer"]["x"] == 25.0
+    code, out, _ = run_json(capsys, "jammer", "set", "-25,-10,0.5", "--endpoint", endpoint)
+    assert code == 0 and json.loads(out)["jammer"]["x"] == -25.0
     code, out, _ = run_json(capsys, "jammer", "show", "--endpoint", endpoint)
     assert code == 0 and json.loads(out)["jammer"]["power_w"] == 0.5
     wait_until(lambda: any(p["role"] == "cloud" and p["sinr_version"] == 2 for p in status()),
@@ -102,7 +101,7 @@ def test_a_running_system_is_controlled_restarts_a_dead_agent_and_stops_on_ctrl_
     assert first in [p["pid"] for p in report["processes"]]
     assert all(gone(p["pid"]) for p in report["processes"])
     changes = [e for e in report["events"] if e["type"] == "jammer_changed"]
-    assert changes and changes[-1]["jammer"]["x"] == 25.0
+    assert changes and changes[-1]["jammer"]["x"] == -25.0
     for figure in report["figures"]:
         assert Path(figure).stat().st_size > 10_000
     code, _, err = run_json(capsys, "status", "--endpoint", endpoint)

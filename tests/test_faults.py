@@ -1,18 +1,22 @@
 """Faults injected into a running ``jamnav up`` (every role its own OS process): SIGKILL the
-cloud or the world mid-run. The supervisor restarts what died; the others keep flying, and
-every measurement the UAVs take reaches the cloud's memory exactly once."""
+cloud, the world or an agent mid-run, then Ctrl-C. The supervisor restarts what died; the
+others keep flying, and every measurement the UAVs take reaches the cloud's memory exactly
+once."""
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import time
+from collections import defaultdict
 
-from support import free_endpoint, gone, wait_until
-
+from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
 from jamnav.cli import main as jamnav
-from uav_agent.uploads import RECEIPT_TIMEOUT_S
+from shared.measurements import MeasurementSpec
+from tests.support import free_endpoint, gone, wait_until
+from uav_agent.uploads import RECEIPT_TIMEOUT_S, OutboxFile, outbox_path
 
 
 def statuses(capsys, endpoint: str) -> list[dict]:
@@ -96,4 +100,55 @@ def test_killed_world_is_restarted_and_the_agents_fly_its_episodes(supervisor, c
     # The episode flown again is new data, not a repeat of what the UAVs measured before.
     counts = report["measurements"]
     assert counts["in_memory"] == counts["taken"] > 0 and counts["duplicates"] == 0
+    assert all(gone(p["pid"]) for p in report["processes"])
+
+
+def test_a_killed_agent_leaves_its_outbox_to_the_next_and_ctrl_c_stores_everything(
+        supervisor, capsys, scenario, tmp_path):
+    endpoint, run_dir = free_endpoint(), tmp_path / "run"
+    process = supervisor("--uavs", "2", "--realtime", "--rate", "20", "--duration", "300",
+                         "--map", "perfect", "--no-figures", "--endpoint", endpoint,
+                         "--run-dir", str(run_dir))
+    wait_until(lambda: (c := one(statuses(capsys, endpoint), "cloud"))
+               and c["details"]["stored"] >= 50, 90, "measurements in the cloud's memory")
+    found = statuses(capsys, endpoint)
+    cloud, agent = one(found, "cloud"), one(found, "agent", "1")
+    # No receipts while the cloud is frozen, so agent 1's outbox fills; frozen in turn, its
+    # file shows what it holds, and it dies with it.
+    os.kill(cloud["pid"], signal.SIGSTOP)
+    time.sleep(2.0)
+    os.kill(agent["pid"], signal.SIGSTOP)
+    left_by_dead, left = OutboxFile(outbox_path(run_dir / "outbox", 1),
+                                    logging.getLogger("test-faults")).load()
+    os.kill(agent["pid"], signal.SIGKILL)
+    os.kill(cloud["pid"], signal.SIGCONT)
+    assert len(left) > 20
+    successor = wait_until(lambda: (a := one(statuses(capsys, endpoint), "agent", "1"))
+                           and a["pid"] != agent["pid"] and a["details"]["decisions"] > 0
+                           and a, 60, "agent 1 restarted and flying")
+    assert successor["details"]["measurements_taken"] >= left_by_dead.taken
+
+    # Ctrl-C while the UAVs fly, their outboxes holding what they took since the last upload.
+    process.send_signal(signal.SIGINT)
+    out, err = process.communicate(timeout=120)
+    assert process.returncode == 0, err[-2000:]
+    report = json.loads((run_dir / "report.json").read_text())
+    assert report["stopped_by"] == "signal"
+    assert report["restarts"] == {"router": 0, "world": 0, "cloud": 0, "agent": 1}
+    counts = report["measurements"]
+    assert counts["buffered"] == counts["overflowed"] == counts["refused"] == 0
+    assert counts["in_memory"] == counts["taken"] == counts["acknowledged"]
+    assert "still buffered" not in out
+    assert f"{counts['taken']} taken, {counts['taken']} in the cloud's memory" in out
+    with SinrMemory(run_dir / RUN_DIR_FILE, MeasurementSpec.of(scenario)) as memory:
+        ids = memory.recent(memory.count()).ids
+    assert len(ids) == len(set(ids)) == counts["taken"]
+    assert {m.id for _, m in left} <= set(ids)
+    # Ids are <uav>-<agent process>-<count>: every count each agent process wrote is there.
+    counted = defaultdict(set)
+    for ident in ids:
+        uav, nonce, count = ident.split("-")
+        counted[uav, nonce].add(int(count))
+    assert sorted(uav for uav, _ in counted) == ["0", "1", "1"]
+    assert all(counts_seen == set(range(len(counts_seen))) for counts_seen in counted.values())
     assert all(gone(p["pid"]) for p in report["processes"])

@@ -1,10 +1,17 @@
 from __future__ import annotations
 
+import json
+import re
+
+import numpy as np
 import pytest
 import torch
+from safetensors.numpy import save as save_bytes
 
+from cloud_service.torch_networks import TorchNetwork, TorchSinrMapNetwork, TorchValueNetwork
+from shared.measurements import predict_probabilities
 from shared.networks import (
-    SinrMapNetwork,
+    Network,
     ValueNetwork,
     WeightsError,
     from_bytes,
@@ -13,39 +20,120 @@ from shared.networks import (
     sha256,
     to_bytes,
 )
+from shared.shipped import (
+    EXTENDED_VALUE_NET,
+    SINR_MAP_NO_JAMMER,
+    SINR_MAP_NO_JAMMER_SHADOWED,
+    VALUE_NET,
+)
 
 
-def trained_like(network):
-    torch.manual_seed(0)
-    for parameter in network.parameters():
-        parameter.data.normal_()
-    network.standardize.fit(torch.randn(50, network.input_size) * 3 + 1)
-    return network
+def trained_like(module: TorchNetwork, seed: int = 0, std: float = 1.0) -> TorchNetwork:
+    torch.manual_seed(seed)
+    for parameter in module.parameters():
+        parameter.data.normal_(0.0, std)
+    module.standardize.fit(torch.randn(50, module.input_size) * 3 + 1)
+    return module
 
 
-@pytest.mark.parametrize("network", [ValueNetwork(34, 2.0), SinrMapNetwork(20, 3)])
-def test_round_trip_is_exact(network, tmp_path):
-    network = trained_like(network)
+def torch_forward(module: TorchNetwork, inputs: np.ndarray) -> np.ndarray:
+    with torch.inference_mode():
+        return module(torch.from_numpy(inputs)).numpy()
+
+
+def module_of(network: Network) -> TorchNetwork:
+    if isinstance(network, ValueNetwork):
+        module = TorchValueNetwork(network.input_size, network.value_scale, network.method)
+    else:
+        module = TorchSinrMapNetwork(network.input_size, network.levels)
+    module.assign(network)
+    return module
+
+
+def inputs_like(network: Network, rows: int, seed: int) -> np.ndarray:
+    """Inputs spread as the network's standardization says its training inputs were."""
+    noise = np.random.default_rng(seed).standard_normal((rows, network.input_size))
+    tensors = network.tensors
+    return (tensors["standardize.mean"] + tensors["standardize.std"] * noise).astype(np.float32)
+
+
+def assert_agree(got: np.ndarray, expected: np.ndarray, tolerance: float = 1e-6) -> None:
+    """Within ``tolerance`` of the largest output: float32 keeps 7 digits, so logits in the
+    hundreds agree to about 1e-5, values (at most the reward scale) to about 1e-7."""
+    assert got.dtype == np.float32 and got.shape == expected.shape
+    np.testing.assert_allclose(got, expected, rtol=0,
+                               atol=tolerance * max(1.0, float(np.abs(expected).max())))
+
+
+@pytest.mark.parametrize("module", [TorchValueNetwork(34, 2.0), TorchSinrMapNetwork(20, 3)])
+def test_round_trip_is_exact(module, tmp_path):
+    module = trained_like(module)
     path = tmp_path / "net.safetensors"
-    digest = save_network(network, path, {"note": "test"})
+    digest = save_network(module.inference(), path, {"note": "test"})
     loaded, card = load_network(path)
     assert card["sha256"] == digest == sha256(path.read_bytes())
-    for (name, a), (_, b) in zip(network.state_dict().items(), loaded.state_dict().items(),
-                                 strict=True):
-        assert torch.equal(a, b), name
-    x = torch.randn(7, network.input_size)
-    assert torch.equal(network.eval()(x), loaded(x))
+    assert card["architecture"] == loaded.architecture() == module.card
+    state = module.state_dict()
+    assert loaded.tensors.keys() == state.keys()
+    for name, tensor in state.items():
+        np.testing.assert_array_equal(loaded.tensors[name], tensor.numpy(), err_msg=name)
+    assert to_bytes(loaded) == path.read_bytes()
+
+
+@pytest.mark.parametrize("path", [VALUE_NET, EXTENDED_VALUE_NET, SINR_MAP_NO_JAMMER,
+                                  SINR_MAP_NO_JAMMER_SHADOWED], ids=lambda path: path.stem)
+def test_the_numpy_forward_agrees_with_torch_on_the_shipped_models(path):
+    network, _ = load_network(path)
+    assert to_bytes(network) == path.read_bytes()
+    inputs = inputs_like(network, 5000, seed=1)
+    expected = torch_forward(module_of(network), inputs)
+    got = network(inputs)
+    if isinstance(network, ValueNetwork):
+        assert_agree(got, expected)
+        assert np.ptp(expected) > 0.5  # the states span values, not one saturated end
+    else:
+        assert_agree(got, expected)
+        assert_agree(predict_probabilities(network, inputs),
+                     torch.softmax(torch.from_numpy(expected), -1).numpy())
+        np.testing.assert_array_equal(got.argmax(-1), expected.argmax(-1))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("build", [lambda: TorchValueNetwork(34, 2.0),
+                                   lambda: TorchSinrMapNetwork(60, 3)], ids=["value", "sinr_map"])
+def test_the_numpy_forward_agrees_with_torch_on_random_weights(build, seed):
+    # Torch's initialization, and weights spread like the shipped networks' (std 0.07-0.5).
+    for module in (build(), trained_like(build(), seed, std=0.2)):
+        network = module.inference()
+        inputs = inputs_like(network, 2000, seed)
+        assert_agree(network(inputs), torch_forward(module, inputs))
+
+
+def test_the_numpy_form_follows_the_modules_training_steps():
+    module = TorchValueNetwork(34, 2.0)
+    network = module.inference()
+    states = torch.randn(64, 34)
+    before = network(states.numpy()).copy()
+    optimizer = torch.optim.Adam(module.parameters(), lr=0.05)
+    for _ in range(3):
+        optimizer.zero_grad()
+        (module(states) - 1.0).square().mean().backward()
+        optimizer.step()
+    module.standardize.fit(states)
+    after = network(states.numpy())
+    assert np.abs(after - before).max() > 0.01
+    assert_agree(after, torch_forward(module, states.numpy()))
 
 
 def test_value_output_is_bounded_by_the_scale():
-    network = trained_like(ValueNetwork(34, 2.0))
-    values = network(torch.randn(1000, 34) * 100)
-    assert values.abs().max() <= 2.0
+    network = trained_like(TorchValueNetwork(34, 2.0)).inference()
+    values = network(np.random.default_rng(0).normal(0, 100, (1000, 34)).astype(np.float32))
+    assert np.abs(values).max() <= 2.0
 
 
 def test_truncated_and_tampered_files_are_refused(tmp_path):
     path = tmp_path / "net.safetensors"
-    save_network(trained_like(ValueNetwork(34, 2.0)), path, {})
+    save_network(trained_like(TorchValueNetwork(34, 2.0)).inference(), path, {})
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
     with pytest.raises(WeightsError, match="digest"):
@@ -61,8 +149,39 @@ def test_truncated_and_tampered_files_are_refused(tmp_path):
 
 
 def test_wrong_architecture_is_refused():
-    data = to_bytes(trained_like(ValueNetwork(34, 2.0)))
+    data = to_bytes(trained_like(TorchValueNetwork(34, 2.0)).inference())
     with pytest.raises(WeightsError, match="does not match"):
         from_bytes(data, expected={"kind": "value", "input_size": 40})
     with pytest.raises(WeightsError, match="does not match"):
         from_bytes(data, expected={"kind": "sinr_map"})
+
+
+def test_tensors_of_another_name_shape_dtype_or_value_are_refused():
+    network = trained_like(TorchValueNetwork(34, 2.0)).inference()
+    metadata = {"architecture": json.dumps(network.architecture())}
+    good = network.tensors
+    bias = good["body.0.bias"]
+    refused = {
+        "tensor names differ: missing ['body.0.bias']":
+            {name: t for name, t in good.items() if name != "body.0.bias"},
+        "tensor body.0.bias: (65,) float32, expected (64,) float32":
+            {**good, "body.0.bias": np.concatenate([bias, bias[:1]])},
+        "tensor body.0.bias: (64,) float64": {**good, "body.0.bias": bias.astype(np.float64)},
+        "tensor body.0.bias holds NaN": {**good, "body.0.bias": np.full(64, np.nan, np.float32)},
+    }
+    for message, tensors in refused.items():
+        with pytest.raises(WeightsError, match=re.escape(message)):
+            from_bytes(save_bytes(tensors, metadata=metadata))
+
+
+@pytest.mark.parametrize(("architecture", "message"), [
+    ({"kind": "policy", "input_size": 34}, "unknown network kind 'policy'"),
+    ({"kind": "value", "input_size": 34}, "incomplete"),
+    ({"kind": "sinr_map", "input_size": 0, "levels": 3}, "without units"),
+    (["value", 34], "not a mapping"),
+])
+def test_unusable_architecture_cards_are_refused(architecture, message):
+    tensors = trained_like(TorchSinrMapNetwork(20, 3)).inference().tensors
+    data = save_bytes(tensors, metadata={"architecture": json.dumps(architecture)})
+    with pytest.raises(WeightsError, match=re.escape(message)):
+        from_bytes(data)

@@ -8,21 +8,34 @@ import torch
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from cloud_service.rollout import LookaheadController, perfect_maps
+from cloud_service.rollout import LookaheadController, fleet_observation, perfect_maps
+from cloud_service.torch_networks import TorchValueNetwork
 from shared.features import EXTENDED_METHOD, Observation, joint_state_size
 from shared.kinematics import closest_approach, velocity_of
-from shared.networks import ValueNetwork
+from shared.networks import ValueNetwork, load_network, value_architecture
 from shared.outcomes import Outcome
 from shared.policy import CELL_CLEARANCE_M, LookaheadPolicy, TrueMap, inside_safe_cells
 from shared.radio import JammerParams, RadioModel
-from world_sim.core import VectorWorld
+from shared.shipped import EXTENDED_VALUE_NET
+from world_sim.core import VectorWorld, episode_seed
+
+
+def untrained(size: int, method: dict | None = None) -> ValueNetwork:
+    """A value network as training starts it (torch's initialization, seeded)."""
+    torch.manual_seed(0)
+    return TorchValueNetwork(size, 2.0, method).inference()
+
+
+def scripted(kind: type[ValueNetwork], size: int, method: dict | None = None) -> ValueNetwork:
+    """A value network whose values ``kind`` computes by a rule instead of by its layers."""
+    return kind(value_architecture(size, 2.0, method), untrained(size, method).tensors)
 
 
 class DistanceValue(ValueNetwork):
     """A value that only rewards being close to the destination (feature 4 = d_d)."""
 
-    def forward(self, state):
-        return -0.05 * state[..., 4]
+    def __call__(self, states):
+        return -0.05 * states[..., 4]
 
 
 def lone_uav(heading, destination, position=(12.5, 0.0)):
@@ -44,7 +57,7 @@ def lone_uav(heading, destination, position=(12.5, 0.0)):
 
 
 def test_in_an_empty_world_the_policy_heads_to_the_goal(scenario):
-    policy = LookaheadPolicy(scenario, DistanceValue(joint_state_size(scenario), 2.0))
+    policy = LookaheadPolicy(scenario, scripted(DistanceValue, joint_state_size(scenario)))
     radio_map = TrueMap(RadioModel(scenario), None)
     for goal_angle in np.linspace(-math.pi, math.pi, 9):
         destination = (12.5 + 30 * math.cos(goal_angle), 30 * math.sin(goal_angle))
@@ -54,20 +67,19 @@ def test_in_an_empty_world_the_policy_heads_to_the_goal(scenario):
 
 
 def test_turn_limit_bounds_the_chosen_heading(scenario):
-    policy = LookaheadPolicy(scenario, DistanceValue(joint_state_size(scenario), 2.0))
+    policy = LookaheadPolicy(scenario, scripted(DistanceValue, joint_state_size(scenario)))
     decision = policy.decide(lone_uav(0.0, (12.5, 30.0)), TrueMap(RadioModel(scenario), None))
     assert math.isclose(decision.heading[0], math.radians(scenario.uav.turn_rate_deg_s))
 
 
 def test_arrival_is_taken_when_within_reach(scenario):
-    policy = LookaheadPolicy(scenario, DistanceValue(joint_state_size(scenario), 2.0))
+    policy = LookaheadPolicy(scenario, scripted(DistanceValue, joint_state_size(scenario)))
     decision = policy.decide(lone_uav(0.0, (15.0, 0.0)), TrueMap(RadioModel(scenario), None))
     assert math.isclose(decision.value[0], scenario.rewards.arrival + scenario.rewards.step)
 
 
 def test_batched_decisions_equal_one_by_one(scenario):
-    torch.manual_seed(0)
-    policy = LookaheadPolicy(scenario, ValueNetwork(joint_state_size(scenario), 2.0))
+    policy = LookaheadPolicy(scenario, untrained(joint_state_size(scenario)))
     radio_map = TrueMap(RadioModel(scenario), None)
     rng = np.random.default_rng(0)
     active = np.ones((2, 3), dtype=bool)
@@ -111,7 +123,7 @@ def test_a_value_network_of_the_wrong_input_size_is_refused(scenario):
     from shared.networks import WeightsError
 
     with pytest.raises(WeightsError, match="features"):
-        LookaheadPolicy(scenario, ValueNetwork(joint_state_size(scenario) + 1, 2.0))
+        LookaheadPolicy(scenario, untrained(joint_state_size(scenario) + 1))
 
 
 def beside_another(other_offset):
@@ -132,13 +144,13 @@ def gap_after(decision, observation) -> float:
 class NearGoalValue(ValueNetwork):
     """Rewards being close to the destination, and never worse than a collision."""
 
-    def forward(self, state):
-        return 1.0 - 0.01 * state[..., 4]
+    def __call__(self, states):
+        return 1.0 - 0.01 * states[..., 4]
 
 
 def test_inside_the_safety_margin_a_uav_moves_on_instead_of_hovering_for_ever(scenario):
     margin = {"collision_margin_m": 3.5}
-    policy = LookaheadPolicy(scenario, NearGoalValue(joint_state_size(scenario), 2.0, margin))
+    policy = LookaheadPolicy(scenario, scripted(NearGoalValue, joint_state_size(scenario), margin))
     radio_map = TrueMap(RadioModel(scenario), None)
     # 2.5 m to the side: a gap of 0.5 m, well inside the margin. Every move, hovering
     # included, passes closer than the margin, yet flying on to the goal opens the gap.
@@ -159,7 +171,7 @@ def test_a_safe_cell_stops_a_uav_half_way_less_its_radius(scenario):
     radio_map = TrueMap(RadioModel(scenario), None)
     advance = {}
     for safe in (False, True):
-        network = NearGoalValue(joint_state_size(scenario), 2.0, {"safe_cells": safe})
+        network = scripted(NearGoalValue, joint_state_size(scenario), {"safe_cells": safe})
         decision = LookaheadPolicy(scenario, network).decide(ahead, radio_map)
         advance[safe] = decision.speed[0] * math.cos(decision.heading[0])
     assert advance[False] > 3.0
@@ -205,9 +217,8 @@ def test_a_crowd_keeping_to_its_cells_has_no_collision(scenario):
     destination = rng.uniform(-40.0, 40.0, (envs, uavs, 2))
     collisions = {}
     for safe in (False, True):
-        torch.manual_seed(0)
         options = EXTENDED_METHOD._replace(safe_cells=safe)._asdict()
-        network = ValueNetwork(joint_state_size(scenario, EXTENDED_METHOD), 2.0, options)
+        network = untrained(joint_state_size(scenario, EXTENDED_METHOD), options)
         controller = LookaheadController(LookaheadPolicy(scenario, network),
                                          perfect_maps(scenario))
         world = VectorWorld(scenario, envs, uavs)
@@ -220,3 +231,37 @@ def test_a_crowd_keeping_to_its_cells_has_no_collision(scenario):
         collisions[safe] = int(np.count_nonzero(world.status == Outcome.COLLISION))
     assert collisions[False] > 0
     assert collisions[True] == 0
+
+
+class TorchForward(ValueNetwork):
+    """The values of a network's torch module, as training computes them."""
+
+    def __init__(self, network: ValueNetwork):
+        super().__init__(network.architecture(), network.tensors)
+        self.module = TorchValueNetwork(network.input_size, network.value_scale, network.method)
+        self.module.assign(network)
+
+    def __call__(self, states):
+        with torch.inference_mode():
+            return self.module(torch.from_numpy(states)).numpy()
+
+
+def test_the_numpy_forward_decides_as_the_torch_module_does(scenario):
+    """The shipped extended network over a fleet in flight: every UAV takes the action the
+    torch module's values give it, and scores it within float32 rounding."""
+    network, _ = load_network(EXTENDED_VALUE_NET)
+    in_numpy = LookaheadPolicy(scenario, network)
+    in_torch = LookaheadPolicy(scenario, TorchForward(network))
+    maps = perfect_maps(scenario)
+    world = VectorWorld(scenario, 16, 4)
+    world.reset(np.arange(16), [episode_seed(5, k) for k in range(16)])
+    decided = 0
+    for _ in range(8):
+        rows = np.flatnonzero(world.active.ravel())
+        seen, radio_map = fleet_observation(world).select(rows), maps(world, rows)
+        ours, theirs = in_numpy.decide(seen, radio_map), in_torch.decide(seen, radio_map)
+        np.testing.assert_array_equal(ours.action, theirs.action)
+        np.testing.assert_allclose(ours.value, theirs.value, rtol=0, atol=1e-6)
+        decided += rows.size
+        world.step(*LookaheadController(in_numpy, maps).act(world))
+    assert decided > 400

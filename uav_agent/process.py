@@ -22,9 +22,9 @@ import sys
 import threading
 import time
 from collections import deque
+from pathlib import Path
 
 import numpy as np
-import torch
 
 from shared import access, bus
 from shared.measurements import Measurement, MeasurementSpec, SpotFilter, scenario_features
@@ -47,8 +47,8 @@ from shared.policy import (
     sinr_network_raster,
 )
 from shared.scenario import Scenario, ScenarioError, load_scenario
-from shared.topics import Topics, add_bus_arguments, endpoint_from
-from uav_agent.uploads import DEFAULT_BATCH, DEFAULT_CAPACITY, Outbox, Uploader
+from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
+from uav_agent.uploads import DEFAULT_BATCH, DEFAULT_CAPACITY, Uploader, open_outbox
 
 ROLE = "agent"
 TIMINGS_KEPT = 4096
@@ -111,7 +111,7 @@ class AgentService:
     def __init__(self, session, topics: Topics, scenario: Scenario, uav: int,
                  log: logging.Logger, upload_every: int = DEFAULT_BATCH,
                  upload_after: float = 1.0,
-                 outbox: int = DEFAULT_CAPACITY):
+                 outbox: int = DEFAULT_CAPACITY, outbox_dir: Path | None = None):
         self.session, self.topics, self.scenario, self.uav, self.log = (
             session, topics, scenario, uav, log)
         self.models = Models(scenario, log)
@@ -126,7 +126,7 @@ class AgentService:
         self.episode: int | None = None
         self.step: int | None = None
         self.upload_every = upload_every
-        self.outbox = Outbox(outbox)
+        self.outbox = open_outbox(outbox, outbox_dir, uav, log)
         self.uploader = Uploader(session, topics.measurements(uav), uav, self.outbox, log,
                                  upload_every, upload_after)
         self.spots = SpotFilter(scenario, 1)
@@ -192,6 +192,7 @@ class AgentService:
         finally:
             stop.set()
             sender.join()
+            self.outbox.close()
 
     def _fly(self, stop: threading.Event) -> None:
         while not stop.is_set():
@@ -254,10 +255,13 @@ class AgentService:
         now = time.time()
         # Built unchecked from the agent's own numbers, ten a step: the cloud checks every
         # record on receipt (MeasurementSpec).
-        for row, level in zip(features.tolist(), kept[:, 2].astype(int).tolist(), strict=True):
-            self.outbox.add(Measurement.model_construct(
-                id=f"{self.uav}-{self.nonce}-{next(self.measured)}", source=f"uav-{self.uav}",
-                step=observation.step, time=now, features=row, level=level), self.upload_every)
+        taken = [Measurement.model_construct(
+                     id=f"{self.uav}-{self.nonce}-{next(self.measured)}",
+                     source=f"uav-{self.uav}", step=observation.step, time=now, features=row,
+                     level=level)
+                 for row, level in zip(features.tolist(), kept[:, 2].astype(int).tolist(),
+                                       strict=True)]
+        self.outbox.add(taken, self.upload_every)
 
 
 def join(session, topics: Topics, stop: threading.Event, log: logging.Logger) -> int | None:
@@ -273,7 +277,7 @@ def join(session, topics: Topics, stop: threading.Event, log: logging.Logger) ->
 
 # -- process shell ------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m uav_agent.process", description=__doc__)
+    parser = ArgumentParser(prog="python -m uav_agent.process", description=__doc__)
     add_bus_arguments(parser)
     parser.add_argument("--scenario", default=None)
     parser.add_argument("--uav", type=int, default=None,
@@ -283,12 +287,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--outbox", type=int, default=DEFAULT_CAPACITY, metavar="N",
                         help="measurements kept while the cloud does not acknowledge them "
                              "(beyond that the oldest are dropped, and counted)")
+    parser.add_argument("--outbox-dir", type=Path, default=None, metavar="DIR",
+                        help="keep the outbox in DIR/uav-<uav>.outbox too, so that it "
+                             "survives the agent (default: in memory only)")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    torch.set_num_threads(1)
     try:
         scenario = load_scenario(args.scenario)
         if args.uav is not None and not 0 <= args.uav < 64:
@@ -297,6 +303,11 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--upload-every must be between 1 and {MAX_UPLOAD}")
         if args.outbox < 1:
             raise ValueError("--outbox must be at least 1")
+        if args.outbox_dir is not None:
+            try:
+                args.outbox_dir.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise ValueError(f"--outbox-dir {args.outbox_dir}: {exc.strerror}") from None
         topics = Topics(args.prefix)
         endpoint = endpoint_from(args.endpoint)
         login = None
@@ -316,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
         if uav is None:
             return 0
         agent = AgentService(session, topics, scenario, uav, log, args.upload_every,
-                             outbox=args.outbox)
+                             outbox=args.outbox, outbox_dir=args.outbox_dir)
         if agent.start(stop):
             agent.run(stop)
     return 0

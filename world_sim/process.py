@@ -47,11 +47,12 @@ from shared.messages import (
 )
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario
-from shared.topics import Topics, add_bus_arguments, endpoint_from
+from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
 from world_sim.core import VectorWorld, episode_seed
 
 ROLE = "world"
 JOIN_HOLD_S = 10.0  # an id handed out is kept for its agent this long, waiting for its token
+OUTCOMES_KEPT = 1000  # episodes whose outcomes a late or reconnected subscriber can fetch
 
 
 @dataclass(frozen=True)
@@ -222,6 +223,9 @@ class WorldService:
         self.observation_pubs = [bus.reliable_publisher(session, topics.observation(uav), True)
                                  for uav in range(config.uavs)]
         self.state_pub = session.declare_publisher(topics.state)  # monitoring: may drop
+        # The outcomes are the run's record: a supervisor that missed some gets them again.
+        self.outcomes_pub = bus.recoverable_publisher(session, topics.event("uav_outcomes"),
+                                                      OUTCOMES_KEPT)
         self._declared = [
             bus.subscribe(session, topics.action("*"), Action, self._on_action, self.dropped),
             session.liveliness().declare_subscriber(topics.alive("agent"),
@@ -315,9 +319,9 @@ class WorldService:
             self.stepping_seconds += time.monotonic() - started
             if result.env_done[0]:
                 self._publish_state()
-                self._publish_event(UavOutcomes(
+                self.outcomes_pub.put(encode(UavOutcomes(
                     t=time.time(), source=ROLE, episode=self.episode, seed=seed,
-                    steps=int(world.steps[0]), outcomes=outcome_labels(world.status[0])))
+                    steps=int(world.steps[0]), outcomes=outcome_labels(world.status[0]))))
                 return True
             if out_of_time():
                 return False
@@ -363,7 +367,8 @@ class WorldService:
             position=[tuple(p) for p in w.position[0].tolist()],
             velocity=[tuple(v) for v in w.velocity[0].tolist()],
             sinr_db=w.sinr_db[0].tolist(), level=w.level[0].tolist(),
-            status=outcome_labels(w.status[0]))))
+            status=outcome_labels(w.status[0]),
+            destination=[tuple(d) for d in w.destination[0].tolist()])))
 
     def _commands(self, actions: dict[int, Action], active: set[int]
                   ) -> tuple[np.ndarray, np.ndarray]:
@@ -386,7 +391,7 @@ class WorldService:
 
 # -- process shell ------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m world_sim.process", description=__doc__)
+    parser = ArgumentParser(prog="python -m world_sim.process", description=__doc__)
     add_bus_arguments(parser)
     parser.add_argument("--scenario", default=None)
     parser.add_argument("--uavs", type=int, default=None)

@@ -1,0 +1,44 @@
+"""A UAV's agent flies without torch: neither importing it nor what it does to fly (taking
+both networks from the cloud's messages, sampling the map, deciding) loads torch."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+FLY_ONCE = """
+import json, logging, sys
+import uav_agent.process
+from shared.messages import AgentObservation, SinrMap, ValueWeights
+from shared.networks import sha256
+from shared.scenario import load_scenario
+from shared.shipped import VALUE_NET, sinr_map_for
+
+scenario = load_scenario()
+models = uav_agent.process.Models(scenario, logging.getLogger("agent"))
+value, sinr = VALUE_NET.read_bytes(), sinr_map_for(scenario.name).read_bytes()
+models.accept(ValueWeights(version=1, sha256=sha256(value), data=value))
+models.accept(SinrMap(version=1, sha256=sha256(sinr), data=sinr, mode="online"))
+seen = AgentObservation(
+    episode=0, step=1, uav=0, position=(12.5, 0.0), velocity=(0.0, 0.0), heading=0.0,
+    destination=(40.0, 30.0), radius=1.0, max_speed=5.0, level=2, below_steps=0,
+    others_position=[(0.0, 5.0)], others_velocity=[(1.0, 0.0)], others_radius=[1.0],
+    others_present=[True])
+decision = models.policy.decide(seen.observation(), models.radio_map)
+print(json.dumps({"speed": float(decision.speed[0]),
+                  "torch": sorted(name for name in sys.modules if name.split(".")[0] == "torch")}))
+"""
+
+
+def test_an_agent_imports_and_flies_without_torch(scenario):
+    # A fresh interpreter: this one has torch loaded by other tests.
+    done = subprocess.run([sys.executable, "-c", FLY_ONCE], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    flown = json.loads(done.stdout.splitlines()[-1])
+    assert flown["torch"] == []
+    assert 0.0 <= flown["speed"] <= scenario.uav.max_speed_mps

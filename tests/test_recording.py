@@ -1,0 +1,178 @@
+"""Runs recorded as MCAP files and replayed: ``jamnav up --record`` during a real lockstep run,
+``jamnav record`` and ``jamnav replay`` as the separate processes a user starts."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import msgpack
+import pytest
+from mcap.writer import Writer
+
+from jamnav.cli import main as jamnav
+from jamnav.recording import Recording, RecordingWriter
+from shared import access, bus
+from shared.messages import Action, MessageError, UavOutcomes, ValueWeights, WorldState, encode
+from shared.topics import Topics
+from tests.support import Drained, free_endpoint, wait_until
+
+ROOT = Path(__file__).resolve().parent.parent
+UAVS = 2
+
+
+def jamnav_process(*argv: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "jamnav.cli", *argv], cwd=ROOT,
+                            env=dict(os.environ, PYTHONPATH=str(ROOT)), text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+@pytest.fixture(scope="module")
+def recorded_run(tmp_path_factory) -> tuple[Path, dict]:
+    """A short lockstep run of the whole system, recorded: the file and the run's report."""
+    run_dir = tmp_path_factory.mktemp("recorded") / "run"
+    process = jamnav_process("up", "--uavs", str(UAVS), "--episodes", "2", "--lockstep",
+                             "--map", "perfect", "--seed", "4", "--no-figures", "--endpoint",
+                             free_endpoint(), "--run-dir", str(run_dir),
+                             "--record", str(run_dir / "run.mcap"))
+    out, err = Drained(process).wait(120)
+    assert process.returncode == 0, err[-2000:]
+    assert f"recording: {run_dir / 'run.mcap'}" in out
+    return run_dir / "run.mcap", json.loads((run_dir / "report.json").read_text())
+
+
+def test_a_recording_holds_the_events_and_outcomes_of_the_live_run(recorded_run):
+    path, report = recorded_run
+    with Recording(path) as recording:
+        assert recording.prefix == "jamnav"
+        items = list(recording.messages())
+    events = [item.message.model_dump(mode="json") for item in items
+              if item.key.startswith("jamnav/event/")]
+    assert events == report["events"]
+    outcomes = [event["outcomes"] for event in events if event["type"] == "uav_outcomes"]
+    assert outcomes == report["outcomes"] and len(outcomes) == 2
+    keys = {item.key for item in items}
+    for uav in range(UAVS):
+        assert {f"jamnav/uav/{uav}/observation", f"jamnav/uav/{uav}/action"} <= keys
+    assert {"jamnav/world/state", "jamnav/cloud/weights/value",
+            "jamnav/cloud/weights/sinr_map"} <= keys
+    # Every step the world flew was recorded from the first: one action per observation.
+    observations = [item.message for item in items if item.key.endswith("/observation")]
+    assert min(o.step for o in observations if o.episode == 0) == 0
+    assert len(observations) == sum(item.key.endswith("/action") for item in items)
+
+
+def test_a_replay_puts_the_same_payloads_in_the_same_order_under_another_prefix(
+        recorded_run, tmp_path):
+    original_path, _ = recorded_run
+    endpoint, copy_path, speed = free_endpoint(), tmp_path / "copy.mcap", 4.0
+    with bus.open_session("router", endpoint), bus.open_session("client", endpoint) as watch:
+        recorder = jamnav_process("record", "--endpoint", endpoint, "--prefix", "replayed",
+                                  "--out", str(copy_path))
+        try:
+            wait_until(lambda: list(watch.liveliness().get("replayed/alive/recorder/*",
+                                                           timeout=0.5)), 30, "the recorder")
+            replay = jamnav_process("replay", str(original_path), "--endpoint", endpoint,
+                                    "--prefix", "replayed", "--speed", str(speed))
+            _, err = Drained(replay).wait(60)
+            assert replay.returncode == 0, err
+        finally:
+            recorder.send_signal(signal.SIGINT)  # Ctrl-C: the file is closed all the same
+            _, recorder_err = Drained(recorder).wait(30)
+    assert recorder.returncode == 0, recorder_err
+    with Recording(original_path) as original, Recording(copy_path) as copy:
+        sent, received = list(original.messages()), list(copy.messages())
+    assert copy.prefix == "replayed"
+    assert [("replayed" + m.key.removeprefix("jamnav"), m.payload) for m in sent] == [
+        (m.key, m.payload) for m in received]
+    assert f"replayed {len(sent)} messages" in err
+
+    def span(items) -> float:
+        return (items[-1].log_time_ns - items[0].log_time_ns) / 1e9
+
+    assert span(received) >= 0.8 * span(sent) / speed  # the recorded pace, not at once
+
+
+def test_payloads_are_kept_exactly_even_from_another_encoder(tmp_path):
+    data = b"\x00\xff safetensors bytes"
+    weights = encode(ValueWeights(version=3, sha256=hashlib.sha256(data).hexdigest(),
+                                  data=data))
+    canonical = encode(Action(episode=1, step=2, uav=0, speed=1.5, heading=0.25))
+    # The same action from an encoder that writes integral floats as ints, keys reordered.
+    foreign = msgpack.packb({"uav": 0, "episode": 1, "step": 3, "speed": 2, "heading": 0})
+    path = tmp_path / "r.mcap"
+    writer = RecordingWriter(path, "jamnav")
+    try:
+        writer.write("jamnav/cloud/weights/value", ValueWeights, weights, 10)
+        writer.write("jamnav/uav/0/action", Action, canonical, 20)
+        writer.write("jamnav/uav/0/action", Action, foreign, 30)
+        with pytest.raises(MessageError):
+            writer.write("jamnav/uav/0/action", Action, b"\xc1", 40)
+    finally:
+        writer.close()
+    with Recording(path) as recording:
+        items = list(recording.messages())
+    assert [(m.key, m.payload, m.log_time_ns) for m in items] == [
+        ("jamnav/cloud/weights/value", weights, 10), ("jamnav/uav/0/action", canonical, 20),
+        ("jamnav/uav/0/action", foreign, 30)]
+    assert items[0].message.data == data and items[2].message.speed == 2.0
+
+
+def test_a_missing_or_damaged_recording_is_one_line_and_exit_2(recorded_run, tmp_path,
+                                                               capsys):
+    good = recorded_run[0].read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(good[: len(good) // 2])
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap file at all")
+    foreign = tmp_path / "foreign.mcap"
+    with foreign.open("wb") as stream:
+        writer = Writer(stream)
+        writer.start()
+        writer.finish()
+    for path, reason in ((tmp_path / "absent.mcap", "No such file"),
+                         (cut, "not a complete MCAP file"), (junk, "not a complete MCAP file"),
+                         (foreign, "not a jamnav recording")):
+        code = jamnav(["replay", str(path), "--endpoint", free_endpoint()])
+        err = capsys.readouterr().err
+        assert code == 2 and err.count("\n") == 1 and reason in err, err
+        assert err.startswith(f"jamnav: error: recording {path}")
+
+
+def test_up_refuses_to_record_a_secure_system_in_one_line(tmp_path, capsys):
+    code = jamnav(["up", "--secure", "--record", str(tmp_path / "r.mcap"), "--endpoint",
+                   free_endpoint(), "--run-dir", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "jamnav record --credentials" in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_on_a_secure_system_the_operator_records_what_it_may_see(tmp_path):
+    credentials, endpoint, topics = access.generate(1), free_endpoint(), Topics()
+    access.save(credentials, tmp_path / "credentials.json")
+    outcome = encode(UavOutcomes(t=1.0, source="world", episode=0, seed=0, steps=3,
+                                 outcomes=["success"]))
+    state = encode(WorldState(episode=0, step=1, clock="lockstep", t=1.0, position=[(0, 0)],
+                              velocity=[(0, 0)], sinr_db=[1.0], level=[1], status=["active"]))
+    action = encode(Action(episode=0, step=1, uav=0, speed=1.0, heading=0.0))
+    with bus.open_session("router", endpoint, guard=access.Guard(credentials, "jamnav")), \
+            bus.open_session("client", endpoint, login=credentials.login("world")) as world, \
+            bus.open_session("client", endpoint, login=credentials.login("agent-0")) as agent:
+        recorder = jamnav_process("record", "--endpoint", endpoint, "--credentials",
+                                  str(tmp_path / "credentials.json"), "--duration", "4",
+                                  "--out", str(tmp_path / "secure.mcap"))
+        while recorder.poll() is None:  # the operator may not announce itself: keep sending
+            world.put(topics.event("uav_outcomes"), outcome)
+            world.put(topics.state, state)
+            agent.put(topics.action(0), action)
+            time.sleep(0.1)
+    assert recorder.returncode == 0, recorder.stderr.read()
+    with Recording(tmp_path / "secure.mcap") as recording:
+        recorded = {(item.key, item.payload) for item in recording.messages()}
+    assert recorded == {(topics.event("uav_outcomes"), outcome), (topics.state, state)}

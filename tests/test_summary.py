@@ -1,0 +1,63 @@
+"""The summary `jamnav up` prints is for people: rounded figures, words where a number is
+missing, success before and after a jammer swap, and the value network named."""
+
+from __future__ import annotations
+
+from jamnav.supervisor import summary_table, swap_rates
+from shared.shipped import EXTENDED_VALUE_NET, VALUE_NET, value_net_name
+
+
+def _report(**changes) -> dict:
+    report = {
+        "episodes": 0, "uavs": 4, "clock": "realtime", "map": "online", "model": "extended",
+        "stopped_by": "signal", "steps_per_second": None, "missed_deadlines": None,
+        "success_rate": None, "disconnection_rate": None, "collision_rate": None,
+        "timeout_rate": None, "swap": None, "restarts": {"router": 0, "world": 0, "cloud": 0,
+                                                          "agent": 0},
+        "dropped_messages": {}, "events": [],
+        "measurements": {"taken": 0, "acknowledged": 0, "buffered": 0, "overflowed": 0,
+                         "refused": 0, "duplicates": 0, "upload_failures": 0,
+                         "in_memory": None, "memory_of_earlier_runs": False},
+    }
+    return {**report, **changes}
+
+
+def test_an_early_ctrl_c_prints_words_not_none():
+    text = summary_table(_report())
+    assert "None" not in text
+    assert "no episode finished" in text
+    assert "the cloud's memory was not reached" in text
+    assert "restarts       none" in text and "value network extended" in text
+
+
+def test_rates_are_rounded_and_a_swap_splits_success_by_hand():
+    outcomes = {0: ["success"] * 4, 1: ["success", "success", "success", "disconnection"],
+                2: ["success", "collision", "timeout", "disconnection"],
+                3: ["success"] * 4}
+    events = [{"type": "uav_outcomes", "episode": 0},
+              {"type": "jammer_changed", "episode": 2, "step": 7,
+               "jammer": {"x": 25.0, "y": -10.0, "power_w": 1.0}},
+              {"type": "jammer_changed", "episode": 3, "step": 1, "jammer": None}]
+    swap = swap_rates(events, outcomes)
+    # Before: episodes 0 and 1, 7 of 8 UAVs; from episode 2 on: 5 of 8.
+    assert swap == {"episode": 2, "before": {"episodes": 2, "success_rate": 7 / 8},
+                    "after": {"episodes": 2, "success_rate": 5 / 8}}
+    assert swap_rates(events[:1], outcomes) is None
+    text = summary_table(_report(
+        episodes=4, success_rate=12 / 16, disconnection_rate=2 / 16, collision_rate=1 / 16,
+        timeout_rate=1 / 16, swap=swap, steps_per_second=19.98765, missed_deadlines=0,
+        events=events, restarts={"router": 0, "world": 0, "cloud": 0, "agent": 2}))
+    assert "success 75.0%, disconnection 12.5%, collision 6.2%, timeout 6.2%" in text
+    assert ("87.5% before the jammer changed (2 episodes), 62.5% from episode 2 on "
+            "(2 episodes)") in text
+    assert "20 steps/s, 0 missed deadlines" in text and "restarts       agent 2" in text
+    assert "jammer moved to (25, -10), 1 W (episode 2, step 7)" in text
+    assert "jammer switched off (episode 3, step 1)" in text
+    assert "None" not in text
+
+
+def test_the_value_network_is_named_by_its_shipped_name_or_its_path(tmp_path):
+    assert value_net_name(None) == "extended"
+    assert value_net_name(EXTENDED_VALUE_NET) == "extended"
+    assert value_net_name(VALUE_NET) == "paper"
+    assert value_net_name(tmp_path / "mine.safetensors") == str(tmp_path / "mine.safetensors")

@@ -1,0 +1,198 @@
+"""The agent's outbox on disk: what an agent leaves in its file is what the next agent of its
+UAV holds and sends, whatever moment the first one died at."""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from pathlib import Path
+from unittest import mock
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from shared.measurements import Measurement
+from uav_agent import uploads
+from uav_agent.process import main as agent_main
+from uav_agent.uploads import DEFAULT_CAPACITY, Outbox, OutboxFile, open_outbox, outbox_path
+
+LOG = logging.getLogger("test-uploads")
+
+
+def measurements(first: int, count: int) -> list[Measurement]:
+    return [Measurement(id=f"0-test-{n}", source="uav-0", step=n, time=1e9 + n,
+                        features=[0.5 * n, -1.0, 12.25], level=n % 3)
+            for n in range(first, first + count)]
+
+
+def held(outbox: Outbox) -> list[Measurement]:
+    """Everything the outbox would upload, oldest first."""
+    return [m for _, m in outbox.wait_batch(1, 0.0, timeout=0, flush=True)]
+
+
+class Agents:
+    """The agents of UAV 0, one after the other: each dies (its file descriptor closed,
+    nothing else done) as the next one starts on the file it left."""
+
+    def __init__(self, directory: Path, capacity: int = DEFAULT_CAPACITY):
+        self.directory, self.capacity = directory, capacity
+        self.file: OutboxFile | None = None
+
+    def next(self) -> Outbox:
+        self.die()
+        self.file = OutboxFile(outbox_path(self.directory, 0), LOG)
+        return Outbox(self.capacity, self.file)
+
+    def die(self) -> None:
+        if self.file is not None:
+            self.file.close()
+
+
+def test_the_next_agent_holds_what_had_no_receipt_under_the_same_ids_and_counts(tmp_path):
+    agents = Agents(tmp_path)
+    first = agents.next()
+    taken = measurements(0, 10)
+    first.add(taken[:6], batch=64)
+    first.add(taken[6:], batch=64)
+    first.acknowledge(3, duplicates=1)  # numbers 0..3
+
+    second = agents.next()
+    assert held(second) == taken[4:]
+    ledger = second.ledger
+    assert (ledger.taken, ledger.acknowledged, ledger.duplicates, ledger.overflowed) == (
+        10, 4, 1, 0)
+    # Its own measurements are numbered on, after the ones it took over.
+    second.add(measurements(10, 2), batch=64)
+    second.acknowledge(9, refused=2)
+    assert held(second) == measurements(10, 2)
+
+    third = agents.next()
+    assert held(third) == measurements(10, 2)
+    assert (third.ledger.taken, third.ledger.acknowledged, third.ledger.refused) == (12, 10, 2)
+    agents.die()
+
+
+def test_open_outbox_is_memory_only_without_a_directory_and_a_file_per_uav_with_one(tmp_path):
+    memory = open_outbox(100, None, 3, LOG)
+    memory.add(measurements(0, 3), batch=64)
+    memory.close()
+    assert len(memory) == 3 and list(tmp_path.iterdir()) == []
+    durable = open_outbox(100, tmp_path, 3, LOG)
+    durable.add(measurements(0, 3), batch=64)
+    durable.close()
+    assert [p.name for p in tmp_path.iterdir()] == ["uav-3.outbox"]
+    assert held(open_outbox(100, tmp_path, 3, LOG)) == measurements(0, 3)
+
+
+def test_a_full_outbox_drops_the_oldest_and_the_next_agent_counts_them(tmp_path):
+    agents = Agents(tmp_path, capacity=5)
+    outbox = agents.next()
+    outbox.add(measurements(0, 8), batch=64)
+    assert held(outbox) == measurements(3, 5) and outbox.ledger.overflowed == 3
+    again = agents.next()
+    assert held(again) == measurements(3, 5)
+    assert (again.ledger.taken, again.ledger.overflowed) == (8, 3)
+    agents.die()
+
+
+def test_the_file_is_rewritten_as_receipts_come_and_stays_small(tmp_path):
+    agents = Agents(tmp_path)
+    outbox = agents.next()
+    path = outbox_path(tmp_path, 0)
+    empty = path.stat().st_size
+    sizes = []
+    with mock.patch.object(uploads, "REWRITE_AFTER", 200):
+        for n in range(0, 5000, 10):
+            outbox.add(measurements(n, 10), batch=64)
+            if n % 50 == 40:  # a receipt for every 50
+                outbox.acknowledge(n + 9)
+                outbox.tidy()
+            sizes.append(path.stat().st_size)
+    record = (sizes[0] - empty) / 10
+    # 5,000 measurements went through; the file never held many more than 200 of them.
+    assert max(sizes) < empty + 300 * record
+    assert [p.name for p in tmp_path.iterdir()] == ["uav-0.outbox"]
+    outbox.close()  # a clean stop leaves the ledger alone
+    assert path.stat().st_size < record
+    again = agents.next()
+    assert held(again) == [] and again.ledger.taken == again.ledger.acknowledged == 5000
+    agents.die()
+
+
+@settings(max_examples=60, deadline=None)
+@given(cut=st.integers(min_value=0, max_value=10_000), garbage=st.binary(max_size=12))
+def test_a_file_cut_anywhere_loads_the_records_written_whole(cut, garbage):
+    """An agent killed while writing leaves a file cut short, maybe with junk after the cut:
+    the next one keeps every record written whole before it, warns, and writes on."""
+    with tempfile.TemporaryDirectory() as tmp:
+        agents = Agents(Path(tmp))
+        outbox = agents.next()
+        path = outbox_path(Path(tmp), 0)
+        boundaries = [path.stat().st_size]  # the ledger's record, then each measurement's
+        for measurement in measurements(0, 12):
+            outbox.add([measurement], batch=64)
+            boundaries.append(path.stat().st_size)
+        data = path.read_bytes()
+        cut %= len(data) + 1
+        left = data[:cut] + (garbage if cut < len(data) else b"")
+        path.write_bytes(left)
+        whole = max(0, sum(end <= cut for end in boundaries) - 1)  # measurements written whole
+        last_boundary = max([0] + [end for end in boundaries if end <= cut])
+
+        with mock.patch.object(LOG, "warning") as warning:
+            again = agents.next()
+        assert held(again) == measurements(0, whole)
+        assert again.ledger.taken == whole
+        assert warning.called == (len(left) > last_boundary)
+        again.add(measurements(100, 1), batch=64)
+        assert held(agents.next()) == measurements(0, whole) + measurements(100, 1)
+        agents.die()
+
+
+@settings(max_examples=40, deadline=None)
+@given(steps=st.lists(st.one_of(
+    st.tuples(st.just("take"), st.integers(1, 12)),
+    st.tuples(st.just("receipt"), st.integers(0, 15)),
+    st.tuples(st.just("tidy"), st.just(0)),
+    st.tuples(st.just("die"), st.just(0))), max_size=40))
+def test_after_any_history_a_restarted_agent_holds_exactly_the_unacknowledged(steps):
+    """A model of the outbox (a list of ids, oldest first, at most 20 of them) against the
+    outbox run through takes, receipts for the oldest few, rewrites and deaths of its agent."""
+    capacity = 20
+    with tempfile.TemporaryDirectory() as tmp, mock.patch.object(uploads, "REWRITE_AFTER", 8):
+        agents = Agents(Path(tmp), capacity)
+        outbox = agents.next()
+        pending: list[str] = []
+        taken = acknowledged = overflowed = 0
+        for action, n in steps:
+            if action == "take":
+                outbox.add(measurements(taken, n), batch=64)
+                pending += [f"0-test-{i}" for i in range(taken, taken + n)]
+                taken += n
+                overflowed += max(len(pending) - capacity, 0)
+                pending = pending[-capacity:]
+            elif action == "receipt" and pending:
+                numbered = outbox.wait_batch(1, 0.0, timeout=0, flush=True)
+                outbox.acknowledge(numbered[min(n, len(numbered) - 1)][0])
+                done = min(n + 1, len(pending))
+                acknowledged += done
+                pending = pending[done:]
+            elif action == "tidy":
+                outbox.tidy()
+            elif action == "die":
+                outbox = agents.next()
+            assert [m.id for m in held(outbox)] == pending
+        restarted = agents.next()
+        assert [m.id for m in held(restarted)] == pending
+        ledger = restarted.ledger
+        assert (ledger.taken, ledger.acknowledged, ledger.overflowed) == (
+            taken, acknowledged, overflowed)
+        agents.die()
+
+
+def test_an_outbox_directory_that_cannot_be_made_is_a_one_line_error(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert agent_main(["--uav", "0", "--outbox-dir", str(blocker / "outbox")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("agent: error: --outbox-dir") and err.count("\n") == 1
