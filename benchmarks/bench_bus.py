@@ -17,12 +17,16 @@ ROOT = Path(__file__).resolve().parent.parent
 SWAP_RUN_S = "75"  # wall seconds: 60 s after the swap, 600 s of flight at 10 steps/s
 
 
-def _up(run_dir: Path, *argv: str) -> dict:
+def free_endpoint() -> str:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
-        endpoint = f"tcp/127.0.0.1:{probe.getsockname()[1]}"
+        return f"tcp/127.0.0.1:{probe.getsockname()[1]}"
+
+
+def up_report(run_dir: Path, *argv: str) -> dict:
+    """The report of a ``jamnav up`` run to its end."""
     subprocess.run([sys.executable, "-m", "jamnav.cli", "up", *argv, "--no-figures",
-                    "--endpoint", endpoint, "--run-dir", str(run_dir)],
+                    "--endpoint", free_endpoint(), "--run-dir", str(run_dir)],
                    cwd=ROOT, check=True, capture_output=True, timeout=600)
     return json.loads((run_dir / "report.json").read_text())
 
@@ -35,11 +39,11 @@ def run() -> list[Figure]:
     figures = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        alone = _up(tmp / "one", "--uavs", "1", "--episodes", "40", "--map", "perfect")
+        alone = up_report(tmp / "one", "--uavs", "1", "--episodes", "40", "--map", "perfect")
         figures.append(Figure("agent decision p99, 1 agent (wall, state in -> action out)",
                               _worst(alone, "decision_p99_us"), "us", 1000, True))
         for uavs, episodes, target in ((4, 60, 200), (10, 30, 100)):
-            report = _up(tmp / f"lockstep{uavs}", "--uavs", str(uavs), "--episodes",
+            report = up_report(tmp / f"lockstep{uavs}", "--uavs", str(uavs), "--episodes",
                          str(episodes), "--map", "perfect")
             figures.append(Figure(f"lockstep steps/s, {uavs} agent processes",
                                   report["steps_per_second"], "steps/s", target))
@@ -49,7 +53,7 @@ def run() -> list[Figure]:
                                   _worst(report, "decision_cpu_p99_us"), "us", 1000, True))
         # The issue's scene: real time at the default rate (10 steps of 1 s a second), the
         # jammer set over the control topic 15 s in.
-        swap = _up(tmp / "swap", "--uavs", "4", "--realtime", "--duration", SWAP_RUN_S,
+        swap = up_report(tmp / "swap", "--uavs", "4", "--realtime", "--duration", SWAP_RUN_S,
                    "--no-jammer", "--swap-jammer-at", "15", "--swap-to", "25,-10,1",
                    "--map", "online")
     events = swap["events"]

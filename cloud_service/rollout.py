@@ -13,11 +13,17 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-from shared.features import Observation
+from shared.features import Observation, decision_reach, nearby_others
 from shared.orca import orca_velocities, preferred_velocity_toward
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting, jammer_params
-from shared.policy import MAP_SPACING_M, LevelRaster, LookaheadPolicy, RadioMap, RasterMap
+from shared.policy import (
+    MAP_SPACING_M,
+    LevelRaster,
+    LookaheadPolicy,
+    RadioMap,
+    RasterMap,
+)
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 from world_sim.core import VectorWorld, episode_seed
@@ -27,10 +33,14 @@ JammerSchedule = Callable[[int], JammerSetting | None]  # episode -> its jammer
 
 
 def fleet_observation(world: VectorWorld) -> Observation:
-    """What every UAV of the world observes, one row per UAV (env-major)."""
+    """What every UAV of the world observes, one row per UAV (env-major): of the others, only
+    those that can change its decision (``nearby_others``), so that a step costs O(J log J)."""
+    reach = float(decision_reach(world.scenario, world.radius.max()))
+    others = nearby_others(world.position, world.active,
+                           world.scenario.policy.observed_uavs, reach)
     return Observation.of_fleet(
         world.position, world.velocity, world.heading, world.destination, world.radius,
-        world.max_speed, world.level, world.below_steps, world.active, world.steps,
+        world.max_speed, world.level, world.below_steps, world.active, world.steps, others,
     )
 
 

@@ -20,7 +20,13 @@ from jamnav.arguments import SEED_MAX, UsageError, check_range, output_path
 from jamnav.cli_runtime import _guarded
 from jamnav.cli_runtime import register as register_runtime
 from shared.radio import RadioModel
-from shared.scenario import Scenario, ScenarioError, load_scenario, resolve_scenario_path
+from shared.scenario import (
+    MAX_UAVS,
+    Scenario,
+    ScenarioError,
+    load_scenario,
+    resolve_scenario_path,
+)
 from shared.shipped import (
     DEFAULT_VALUE_NET,
     SINR_MAP_NO_JAMMER,
@@ -230,7 +236,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from shared.paper import JammerSetting
 
     check_range("--episodes", args.episodes, 1)
-    check_range("--uavs", args.uavs, 1, 64)
+    check_range("--uavs", args.uavs, 1, MAX_UAVS)
     check_range("--seed", args.seed, 0, SEED_MAX)
     if args.swap_every is not None:
         check_range("--swap-every", args.swap_every, 1)

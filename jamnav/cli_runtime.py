@@ -21,7 +21,7 @@ from pathlib import Path
 
 from jamnav.arguments import SEED_MAX, UsageError, check_range, output_path
 from shared.messages import JammerCommand, mapper_summary
-from shared.scenario import ScenarioError, load_scenario
+from shared.scenario import MAX_UAVS, ScenarioError, load_scenario
 from shared.shipped import VALUE_NET_HELP, value_net_path
 from shared.topics import (
     DEFAULT_ENDPOINT,
@@ -33,6 +33,7 @@ from shared.topics import (
 
 DEFAULT_SWAP_TO = "25,-10,1"  # Table I's second setting
 DEFAULT_RATE = 10.0
+AGENT_LINES = 8  # ``jamnav status`` sums up more agents than this in one line
 _ROUTER_ID = re.compile(r"^[A-Za-z0-9_-]+$")
 
 
@@ -99,7 +100,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     scenario = load_scenario(args.scenario)
     uavs = scenario.missions.uav_count if args.uavs is None else args.uavs
-    check_range("--uavs", uavs, 1, 64)
+    check_range("--uavs", uavs, 1, MAX_UAVS)
     check_range("--episodes", args.episodes, 1)
     check_range("--seed", args.seed, 0, SEED_MAX)
     for name in ("duration", "rate", "deadline", "swap_jammer_at"):
@@ -237,13 +238,45 @@ def cmd_status(args: argparse.Namespace) -> int:
             if (role, ident) in statuses else {})} for role, ident in live]))
         return 0
     order = {"router": 0, "world": 1, "cloud": 2, "agent": 3}
-    for role, ident in sorted(live, key=lambda k: (order.get(k[0], 9), k[0], int(k[1])
-                                                    if k[1].isdigit() else 0)):
+    live = sorted(live, key=lambda k: (order.get(k[0], 9), k[0], int(k[1])
+                                       if k[1].isdigit() else 0))
+    agents = [ident for role, ident in live if role == "agent"]
+    for role, ident in live:
+        if role == "agent" and len(agents) > AGENT_LINES:
+            continue
         status = statuses.get((role, ident))
         pid = status.pid if status else ""
         print(f"{role + '-' + ident:<12} {pid!s:>7}  live  "
               f"{_describe(status) if status else ''}".rstrip())
+    if len(agents) > AGENT_LINES:
+        print(_describe_agents(agents, statuses))
     return 0
+
+
+def _versions(numbers: list[int | None]) -> str:
+    known = sorted({n for n in numbers if n is not None})
+    if not known:
+        return "?"
+    return f"v{known[0]}" if len(known) == 1 else f"v{known[0]}..v{known[-1]}"
+
+
+def _describe_agents(agents: list[str], statuses: dict) -> str:
+    """One line for many agents: what they fly on, their total work, and the worst of them
+    (``--json`` has every one)."""
+    answered = [statuses[("agent", ident)] for ident in agents if ("agent", ident) in statuses]
+    text = f"{'agents':<12} {len(agents):>7}  live"
+    if len(answered) < len(agents):
+        text += f" ({len(agents) - len(answered)} not answering)"
+    if not answered:
+        return text
+    worst = max(answered, key=lambda s: s.details.get("decision_p99_us") or 0)
+    behind = min(answered, key=lambda s: (s.episode or 0, s.step or 0))
+    return (f"{text}  value net {_versions([s.value_version for s in answered])}, map "
+            f"{_versions([s.sinr_version for s in answered])}, "
+            f"{sum(int(s.details.get('decisions') or 0) for s in answered)} decisions, "
+            f"decision p99 worst {worst.details.get('decision_p99_us') or 0:.0f} us "
+            f"(agent-{worst.ident}), furthest behind agent-{behind.ident} at episode "
+            f"{behind.episode} step {behind.step}")
 
 
 # -- record and replay ---------------------------------------------------------------------------

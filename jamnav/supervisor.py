@@ -62,6 +62,10 @@ RESTART_LIMIT = 5
 STEADY_S = 10.0
 STATUS_EVERY_S = 2.0
 FLUSH_WAIT_S = 5.0
+# How long the world waits for every agent's first token (and first action): agents start in
+# parallel, so on a machine of few cores their start takes time in proportion to their number.
+START_TIMEOUT_S = 60.0
+START_PER_AGENT_S = 1.0
 OUTBOX_DIR = "outbox"  # in the run directory: one file per UAV, which outlives its agent
 
 
@@ -161,6 +165,7 @@ class Supervisor:
         self.destinations: dict[int, list[tuple[float, float]]] = {}
         self.state: WorldState | None = None
         self.first_step: float | None = None
+        self.launched_at = time.monotonic()
         self.finished: dict[str, Any] | None = None
         self.initial_jammer = initial_jammer(scenario, config.jammer, config.no_jammer)
         self.jammer = self.initial_jammer
@@ -228,7 +233,8 @@ class Supervisor:
         done = len(self.outcomes)
         argv = python + ["world_sim.process", *common, "--uavs", str(c.uavs), "--seed",
                          str(c.seed), "--clock", c.clock, "--rate", str(c.rate), "--deadline",
-                         str(c.deadline), "--first-episode", str(done), *jammer]
+                         str(c.deadline), "--first-episode", str(done), "--start-timeout",
+                         str(START_TIMEOUT_S + START_PER_AGENT_S * c.uavs), *jammer]
         if c.episodes is not None:
             argv += ["--episodes", str(c.episodes - done)]
         if c.duration is not None:
@@ -445,9 +451,7 @@ class Supervisor:
             line = f"starting: {live}/{expected} processes live"
         else:
             s = self.state
-            uavs = " ".join(
-                f"u{i}:{f'{s.sinr_db[i]:+.0f}dB' if status == 'active' else status[:4]}"
-                for i, status in enumerate(s.status[:8]))
+            uavs = fleet_line(s)
             rate = self.world_status.details.get("steps_per_second") if self.world_status else 0
             line = (f"ep {s.episode} step {s.step:3d} | {len(self.outcomes)} done | "
                     f"{rate or 0:.0f} steps/s | {mapper_summary(self.cloud_status)} | {uavs} | "
@@ -591,6 +595,8 @@ class Supervisor:
             **rates,
             "swap": swap_rates(self.events, dict(zip(sorted(self.outcomes), outcomes,
                                                      strict=True))),
+            "first_step_after_s": None if self.first_step is None
+            else self.first_step - self.launched_at,
             "steps_per_second": (self.finished or details).get("steps_per_second"),
             "missed_deadlines": (self.finished or details).get("missed_deadlines"),
             "events": self.events,
@@ -648,6 +654,36 @@ def swap_rates(events: list[dict[str, Any]], outcomes: dict[int, list[str]]
             "after": success([k for k in outcomes if k >= change["episode"]])}
 
 
+def fleet_line(state: WorldState, shown: int = 8) -> str:
+    """The UAVs for the progress line: each of a small fleet, else counts by status and the
+    weakest link among those flying."""
+    if len(state.status) <= shown:
+        return " ".join(
+            f"u{i}:{f'{state.sinr_db[i]:+.0f}dB' if status == 'active' else status[:4]}"
+            for i, status in enumerate(state.status))
+    counts = Counter(state.status)
+    flying = [db for db, status in zip(state.sinr_db, state.status, strict=True)
+              if status == "active"]
+    weakest = f" (weakest {min(flying):+.0f}dB)" if flying else ""
+    return f"{len(state.status)} UAVs: " + ", ".join(
+        f"{n} {label[:4]}" + (weakest if label == "active" else "")
+        for label, n in sorted(counts.items()))
+
+
+def agents_line(agents: dict[str, dict[str, Any]]) -> str:
+    """The agents at the end, for people: how many, their decisions, the slowest of them
+    (the report has every one)."""
+    p99 = {ident: a.get("decision_p99_us") for ident, a in agents.items()}
+    p99 = {ident: value for ident, value in p99.items() if value is not None}
+    decisions = sum(int(a.get("decisions") or 0) for a in agents.values())
+    text = f"{len(agents)} reported, {decisions} decisions"
+    if p99:
+        worst = max(p99, key=p99.get)
+        text += (f", decision p99 median {float(np.median(list(p99.values()))):.0f} us, "
+                 f"worst {p99[worst]:.0f} us (agent {worst})")
+    return text
+
+
 def _percent(rate: float | None) -> str:
     return "-" if rate is None else f"{rate:.1%}"
 
@@ -671,6 +707,8 @@ def summary_table(report: dict[str, Any]) -> str:
         missed = report["missed_deadlines"]
         rows.append(f"  pace           {sps:.0f} steps/s"
                     + ("" if missed is None else f", {missed} missed deadlines"))
+    if agents := report.get("agents"):
+        rows.append(f"  agents         {agents_line(agents)}")
     restarts = {k: v for k, v in report["restarts"].items() if v}
     rows.append("  restarts       " + (", ".join(f"{k} {v}" for k, v in restarts.items())
                                        or "none"))

@@ -11,9 +11,24 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from shared.kinematics import wrap_angle
 from shared.scenario import Scenario
+
+# The lookahead's safe cells (shared.policy.inside_safe_cells) keep this far from a cell's edge,
+# so two UAVs at their edges do not touch; which others an observation must carry follows.
+CELL_CLEARANCE_M = 0.005
+REACH_SLACK_M = 1.0  # added to decision_reach against rounding at its edge
+
+
+def decision_reach(scenario: Scenario, radius: np.ndarray) -> np.ndarray:
+    """How near another UAV must be to matter to a decision beyond the J_n nearest: the safe
+    cell (``shared.policy.inside_safe_cells``) stops a move at half the distance to each other
+    less the UAV's ``radius`` and clearance, and no move is longer than v_max * dt, so only an
+    other closer than twice their sum can bound it."""
+    longest_move = scenario.uav.max_speed_mps * scenario.timing.step_s
+    return 2 * (longest_move + radius + CELL_CLEARANCE_M) + REACH_SLACK_M
 
 OWN_FEATURES = ("v_x", "v_y", "dest_x", "dest_y", "dest_distance", "dest_azimuth",
                 "radius", "max_speed", "heading")
@@ -98,16 +113,23 @@ class Observation:
         below_steps: np.ndarray,
         active: np.ndarray,
         step: np.ndarray,
+        others: np.ndarray | None = None,
     ) -> Observation:
         """Observations of every UAV of E fleets of J (arrays (E, J, ...), step (E,)), each
-        seeing the other J - 1 UAVs of its own fleet; rows are ordered env-major."""
+        seeing the others of its own fleet that ``others`` (E, J, M) lists (``nearby_others``:
+        indices, -1 for none), or all J - 1 of them; rows are ordered env-major."""
         e, j = active.shape
-        others = np.array([[k for k in range(j) if k != i] for i in range(j)], dtype=np.int64)
-        others = others.reshape(j, max(j - 1, 0))
+        if others is None:
+            column = np.arange(max(j - 1, 0))
+            everyone = column[None, :] + (column[None, :] >= np.arange(j)[:, None])
+            others = np.broadcast_to(everyone, (e, j, column.size))
+        width = others.shape[2]
+        fleet = np.arange(e)[:, None, None]
+        listed = np.maximum(others, 0)
 
         def gather(values: np.ndarray) -> np.ndarray:
-            picked = values[:, others]  # (E, J, J-1, ...)
-            return picked.reshape((e * j, j - 1) + values.shape[2:])
+            picked = values[fleet, listed]  # (E, J, M, ...)
+            return picked.reshape((e * j, width) + values.shape[2:])
 
         return cls(
             position=position.reshape(e * j, 2),
@@ -122,7 +144,7 @@ class Observation:
             others_position=gather(position),
             others_velocity=gather(velocity),
             others_radius=gather(radius),
-            others_present=gather(active),
+            others_present=gather(active) & (others >= 0).reshape(e * j, width),
         )
 
     def select(self, rows: np.ndarray) -> Observation:
@@ -140,6 +162,52 @@ class Observation:
         for name in ("others_position", "others_velocity", "others_radius", "others_present"):
             fields[name] = fields[name][rows, order]
         return Observation(**fields)
+
+
+def decision_relevant(observation: Observation, count: int, reach: np.ndarray) -> np.ndarray:
+    """Which others (N, M) can change a UAV's decision: the ``count`` nearest present ones
+    (ranked as ``Observation.nearest_neighbours`` ranks them, ties included) and every present
+    one closer than the UAV's ``reach`` (N,). Removing the rest, in order, leaves the same
+    nearest neighbours, and absent others count as nothing anywhere."""
+    relative = observation.others_position - observation.position[:, None, :]
+    distance = np.where(observation.others_present,
+                        np.hypot(relative[..., 0], relative[..., 1]), np.inf)
+    nearest = np.argsort(distance, axis=1, kind="stable")[:, :count]
+    ranked = np.zeros(distance.shape, dtype=bool)
+    np.put_along_axis(ranked, nearest, True, axis=1)
+    return observation.others_present & (ranked | (distance <= reach[:, None]))
+
+
+def nearby_others(position: np.ndarray, active: np.ndarray, count: int,
+                  reach: float) -> np.ndarray | None:
+    """The others each UAV of E fleets of J (position (E, J, 2), active (E, J)) must see to
+    decide as if it saw them all (``decision_relevant``): indices (E, J, M) of its ``count``
+    nearest active others and of every active one within ``reach``, nearest first, -1 where a
+    row has fewer. None when every other is among the ``count`` nearest anyway. A k-d tree per
+    fleet keeps this O(J log J), where the full view of the J - 1 others is O(J^2)."""
+    e, j = active.shape
+    if j - 1 <= count:
+        return None
+    rows = np.arange(j)[:, None]
+    picked = []
+    for env in range(e):
+        members = np.flatnonzero(active[env])
+        if members.size == 0:
+            picked.append(np.empty((j, 0), dtype=np.int64))
+            continue
+        tree = cKDTree(position[env, members])
+        in_reach = tree.query_ball_point(position[env], reach, return_length=True)
+        # One more than wanted: an active UAV finds itself first.
+        k = min(members.size, max(count, int(in_reach.max())) + 1)
+        _, nearest = tree.query(position[env], k=k)
+        found = members[nearest.reshape(j, k)]
+        kept = np.argsort(found == rows, axis=1, kind="stable")[:, : k - 1]
+        picked.append(np.take_along_axis(found, kept, axis=1))
+    width = max(p.shape[1] for p in picked)
+    out = np.full((e, j, width), -1, dtype=np.int64)
+    for env, found in enumerate(picked):
+        out[env, :, : found.shape[1]] = found
+    return out
 
 
 def joint_state(

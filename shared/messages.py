@@ -24,8 +24,8 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError,
 from shared.features import Observation
 from shared.measurements import Measurement
 from shared.outcomes import Outcome
+from shared.scenario import MAX_UAVS
 
-MAX_UAVS = 64  # the scenario's own limit on missions.uav_count
 MAX_WEIGHTS_BYTES = 8 * 2**20
 MAX_REPORTS = 100  # the scenario's own limit on uav.measurements_per_step
 
@@ -99,18 +99,22 @@ class AgentObservation(Message):
 
     @classmethod
     def of_row(cls, observation: Observation, row: int, episode: int, uav: int,
-               measured: list[tuple[float, float, int]] = ()) -> AgentObservation:
+               measured: list[tuple[float, float, int]] = (),
+               others: np.ndarray | None = None) -> AgentObservation:
+        """Row ``row`` of ``observation``, with only the others the mask ``others`` (M,)
+        keeps (``shared.features.decision_relevant``), in their order; all without it."""
         o = observation
+        keep = slice(None) if others is None else others
         return cls.model_construct(
             episode=episode, step=int(o.step[row]), uav=uav,
             position=tuple(o.position[row].tolist()), velocity=tuple(o.velocity[row].tolist()),
             heading=float(o.heading[row]), destination=tuple(o.destination[row].tolist()),
             radius=float(o.radius[row]), max_speed=float(o.max_speed[row]),
             level=int(o.level[row]), below_steps=int(o.below_steps[row]),
-            others_position=[tuple(p) for p in o.others_position[row].tolist()],
-            others_velocity=[tuple(v) for v in o.others_velocity[row].tolist()],
-            others_radius=o.others_radius[row].tolist(),
-            others_present=o.others_present[row].tolist(),
+            others_position=[tuple(p) for p in o.others_position[row][keep].tolist()],
+            others_velocity=[tuple(v) for v in o.others_velocity[row][keep].tolist()],
+            others_radius=o.others_radius[row][keep].tolist(),
+            others_present=o.others_present[row][keep].tolist(),
             measured=list(measured),
         )
 
@@ -148,6 +152,9 @@ class Action(Message):
 class WorldState(Message):
     """The whole fleet after a step, for monitoring: every list is in UAV order."""
 
+    # At most 81 bytes a UAV in msgpack (three places, an SINR, a level, the longest status):
+    # 83 kB for MAX_UAVS = 1,024, past the default cap.
+    max_bytes: ClassVar[int] = 4096 + 96 * MAX_UAVS
     episode: Count
     step: Count
     clock: Clock

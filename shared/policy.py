@@ -14,7 +14,13 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-from shared.features import MethodOptions, Observation, joint_state, joint_state_size
+from shared.features import (
+    CELL_CLEARANCE_M,
+    MethodOptions,
+    Observation,
+    joint_state,
+    joint_state_size,
+)
 from shared.kinematics import ActionSet, closest_approach, velocity_of
 from shared.measurements import predict_levels, scenario_features
 from shared.networks import SinrMapNetwork, ValueNetwork, WeightsError
@@ -36,6 +42,7 @@ class RadioMap(Protocol):
 
 
 MAP_SPACING_M = 0.5  # raster spacing of the lookahead's maps: well below a UAV's radius
+RASTER_BLOCK_ROWS = 64  # grid rows whose SINR-map features are computed at once
 
 
 class TrueMap:
@@ -95,10 +102,15 @@ class LevelRaster:
 def sinr_network_raster(
     network: SinrMapNetwork, scenario: Scenario, spacing: float = MAP_SPACING_M
 ) -> LevelRaster:
-    """A SINR-mapping network's map sampled on the lookahead's grid."""
-    return LevelRaster.sample(
-        scenario, lambda grid: predict_levels(network, scenario_features(scenario, grid)), spacing
-    )
+    """A SINR-mapping network's map sampled on the lookahead's grid, a block of rows at a time
+    (the features of a whole city-sized grid at once would take gigabytes)."""
+
+    def levels(grid: np.ndarray) -> np.ndarray:
+        blocks = np.array_split(grid, max(1, grid.shape[0] // RASTER_BLOCK_ROWS))
+        return np.concatenate([predict_levels(network, scenario_features(scenario, block))
+                               for block in blocks])
+
+    return LevelRaster.sample(scenario, levels, spacing)
 
 
 class RasterMap:
@@ -127,7 +139,6 @@ class RasterMap:
 
 
 CLOSING_TOLERANCE_M = 0.01  # inside the margin, closing by less than this still counts as holding
-CELL_CLEARANCE_M = 0.005  # kept from the cell's edge, so two UAVs at their edges do not touch
 
 
 def inside_safe_cells(

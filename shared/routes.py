@@ -45,39 +45,59 @@ class RouteGrid:
             (np.concatenate(weights), (np.concatenate(sources), np.concatenate(targets))),
             shape=(n, n),
         ).tocsr()
-        self.cache: OrderedDict[int, np.ndarray] = OrderedDict()
+        # Destination node -> its slot in ``store``, least recently used first. One array of
+        # fields read by fancy indexing: stacking them per query would copy every field at
+        # every step (43 MB a step with 256 UAVs on a 400 m map).
+        self.cache: OrderedDict[int, int] = OrderedDict()
         self.cache_size = cache_size
+        self.store = np.empty((0, self.rows, self.cols), dtype=np.float32)
 
     def node_of(self, xy: np.ndarray) -> np.ndarray:
         col = np.clip(np.rint((xy[..., 0] - self.x0) / self.cell), 0, self.cols - 1)
         row = np.clip(np.rint((xy[..., 1] - self.y0) / self.cell), 0, self.rows - 1)
         return (row * self.cols + col).astype(np.int64)
 
-    def fields(self, nodes: np.ndarray) -> np.ndarray:
-        """Distance fields (len(nodes), rows, cols) to each destination node, cached."""
-        missing = [int(n) for n in dict.fromkeys(nodes.tolist()) if n not in self.cache]
+    def slots(self, nodes: np.ndarray) -> np.ndarray:
+        """Slots in ``store`` of the distance fields to each destination node (distinct),
+        computed on first use; beyond cache_size the least recently used field's slot is
+        reused."""
+        wanted = nodes.tolist()
+        for node in wanted:
+            if node in self.cache:
+                self.cache.move_to_end(node)
+        missing = [node for node in wanted if node not in self.cache]
         if missing:
             distances = dijkstra(self.graph, directed=False, indices=missing)
             for node, row in zip(missing, distances, strict=True):
-                self.cache[node] = row.reshape(self.rows, self.cols).astype(np.float32)
-        for node in nodes.tolist():
-            self.cache.move_to_end(node)
-        while len(self.cache) > self.cache_size:
-            self.cache.popitem(last=False)
-        return np.stack([self.cache[int(n)] for n in nodes])
+                slot = self._free_slot()
+                self.store[slot] = row.reshape(self.rows, self.cols)
+                self.cache[node] = slot
+        return np.array([self.cache[node] for node in wanted], dtype=np.int64)
+
+    def _free_slot(self) -> int:
+        if len(self.cache) >= self.cache_size:
+            _, slot = self.cache.popitem(last=False)
+        else:
+            slot = len(self.cache)
+            if slot == len(self.store):
+                grown = np.empty((max(1, 2 * slot),) + self.store.shape[1:], dtype=np.float32)
+                grown[:slot] = self.store
+                self.store = grown
+        return slot
 
     def distance(self, xy: np.ndarray, destination: np.ndarray) -> np.ndarray:
         """Route distance from positions ``xy`` (N, ..., 2) to each row's ``destination``
         (N, 2): the field interpolated at ``xy`` plus the last stretch to the exact point."""
         nodes = self.node_of(destination)
         unique, which = np.unique(nodes, return_inverse=True)
-        fields = self.fields(unique)
+        slot = self.slots(unique)[which]
+        fields = self.store
         fx = np.clip((xy[..., 0] - self.x0) / self.cell, 0, self.cols - 1)
         fy = np.clip((xy[..., 1] - self.y0) / self.cell, 0, self.rows - 1)
         c0 = np.minimum(np.floor(fx).astype(np.int64), self.cols - 2)
         r0 = np.minimum(np.floor(fy).astype(np.int64), self.rows - 2)
         tx, ty = fx - c0, fy - r0
-        field = which.reshape((-1,) + (1,) * (xy.ndim - 2))
+        field = slot.reshape((-1,) + (1,) * (xy.ndim - 2))
         value = (
             fields[field, r0, c0] * (1 - tx) * (1 - ty)
             + fields[field, r0, c0 + 1] * tx * (1 - ty)

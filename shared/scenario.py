@@ -25,6 +25,9 @@ else:  # pragma: no cover - exercised only on Python 3.10
 
 SCENARIO_DIR = shipped_dir("scenarios")
 DEFAULT_SCENARIO = "icc2021"
+# The most UAVs one episode flies: what the world, the lookahead and the bus messages are sized
+# for (the city scenario at 1,024 UAVs is benchmarks/bench_scale.py's largest case).
+MAX_UAVS = 1024
 
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -151,7 +154,7 @@ class Rewards(_Strict):
 
 
 class Missions(_Strict):
-    uav_count: int = Field(ge=1, le=64)
+    uav_count: int = Field(ge=1, le=MAX_UAVS)
     mode: Literal["uniform"] = "uniform"
     margin_m: NonNegative
     min_trip_m: NonNegative

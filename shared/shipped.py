@@ -19,9 +19,11 @@ VALUE_NET = MODELS_DIR / "value_net.safetensors"  # the paper's method
 EXTENDED_VALUE_NET = MODELS_DIR / "value_net_extended.safetensors"
 SINR_MAP_NO_JAMMER = MODELS_DIR / "sinr_map_no_jammer.safetensors"
 SINR_MAP_NO_JAMMER_SHADOWED = MODELS_DIR / "sinr_map_no_jammer_shadowed.safetensors"
+SINR_MAP_NO_JAMMER_CITY = MODELS_DIR / "sinr_map_no_jammer_city.safetensors"
 
 # The survey map (no jammer) learned in each scenario's world; other scenarios share icc2021's.
-_SURVEY_MAPS = {"icc2021-shadowed": SINR_MAP_NO_JAMMER_SHADOWED}
+_SURVEY_MAPS = {"icc2021-shadowed": SINR_MAP_NO_JAMMER_SHADOWED,
+                "city": SINR_MAP_NO_JAMMER_CITY}
 
 
 def sinr_map_for(scenario_name: str) -> Path:

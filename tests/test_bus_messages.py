@@ -57,7 +57,7 @@ def test_an_observation_row_survives_the_wire_bit_for_bit(scenario):
      "finite"),
     (msgpack.packb({"episode": 0, "step": 0, "uav": 0, "speed": -1.0, "heading": 0}),
      "speed"),
-    (msgpack.packb({"episode": 0, "step": 0, "uav": 99, "speed": 1.0, "heading": 0}), "uav"),
+    (msgpack.packb({"episode": 0, "step": 0, "uav": 1024, "speed": 1.0, "heading": 0}), "uav"),
     (msgpack.packb({"episode": 0, "step": 0, "uav": 0, "speed": 1.0, "heading": 0, "x": 1}),
      "x"),
     (msgpack.packb({"episode": 0, "step": 0, "uav": 0, "speed": 1.0,

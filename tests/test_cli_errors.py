@@ -72,7 +72,7 @@ CASES = [
     (["eval", "--episodes", "-3"], 2),
     (["eval", "--episodes", "nan"], 2),
     (["eval", "--uavs", "0"], 2),
-    (["eval", "--uavs", "65"], 2),
+    (["eval", "--uavs", "1025"], 2),
     (["eval", "--seed", "-1"], 2),
     (["eval", "--seed", str(2**64)], 2),
     (["eval", "--method", "magic"], 2),

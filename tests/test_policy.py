@@ -10,11 +10,11 @@ from hypothesis import strategies as st
 
 from cloud_service.rollout import LookaheadController, fleet_observation, perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
-from shared.features import EXTENDED_METHOD, Observation, joint_state_size
+from shared.features import CELL_CLEARANCE_M, EXTENDED_METHOD, Observation, joint_state_size
 from shared.kinematics import closest_approach, velocity_of
 from shared.networks import ValueNetwork, load_network, value_architecture
 from shared.outcomes import Outcome
-from shared.policy import CELL_CLEARANCE_M, LookaheadPolicy, TrueMap, inside_safe_cells
+from shared.policy import LookaheadPolicy, TrueMap, inside_safe_cells
 from shared.radio import JammerParams, RadioModel
 from shared.shipped import EXTENDED_VALUE_NET
 from world_sim.core import VectorWorld, episode_seed

@@ -10,9 +10,11 @@ longer measured, and cannot be collided with.
 from __future__ import annotations
 
 import math
+from collections import defaultdict
 from typing import NamedTuple
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from shared.kinematics import ActionSet, closest_approach, velocity_of
 from shared.outcomes import Outcome
@@ -23,6 +25,10 @@ from shared.scenario import Scenario
 _CANDIDATES_PER_DRAW = 64
 _RECEIVER_NOISE = 1  # second word of an episode's receiver-noise seed: a stream of its own
 _MAX_DRAWS = 500
+# From this many UAVs on, a k-d tree finds the pairs that may touch within a step; below it,
+# checking every pair is cheaper than building the trees.
+_TREE_FROM_UAVS = 32
+_PAIR_SLACK_M = 1.0  # added to the pair search's reach against rounding at its edge
 
 
 def episode_seed(master_seed: int, episode: int) -> int:
@@ -34,6 +40,29 @@ class StepResult(NamedTuple):
     reward: np.ndarray  # (E, J); 0 for UAVs that were already finished
     finished: np.ndarray  # (E, J) bool: the mission ended in this step
     env_done: np.ndarray  # (E,) bool: every UAV of the environment has finished
+
+
+class _Spread:
+    """Points kept at least ``separation`` apart, hashed on a grid of cells twice that wide:
+    a new point is checked against the points of its own and the 8 adjacent cells only (any
+    other is farther than a cell), so placing J points costs O(J), not O(J^2)."""
+
+    def __init__(self, separation: float):
+        self.separation = separation
+        self.cell = 2 * separation
+        self.cells: dict[tuple[int, int], list[tuple[float, float]]] = defaultdict(list)
+
+    def _key(self, x: float, y: float) -> tuple[int, int]:
+        return math.floor(x / self.cell), math.floor(y / self.cell)
+
+    def clear_of(self, x: float, y: float) -> bool:
+        cx, cy = self._key(x, y)
+        return not any(math.hypot(x - px, y - py) < self.separation
+                       for dx in (-1, 0, 1) for dy in (-1, 0, 1)
+                       for px, py in self.cells.get((cx + dx, cy + dy), ()))
+
+    def add(self, x: float, y: float) -> None:
+        self.cells[self._key(x, y)].append((x, y))
 
 
 class MissionSampler:
@@ -52,17 +81,17 @@ class MissionSampler:
         rng = np.random.default_rng(seed)
         starts: list[tuple[float, float]] = []
         goals: list[tuple[float, float]] = []
-        separation = self.min_separation
+        start_spread, goal_spread = _Spread(self.min_separation), _Spread(self.min_separation)
         for _ in range(_MAX_DRAWS):
             draw = rng.uniform(self.low, self.high, size=(2, _CANDIDATES_PER_DRAW, 2))
             long_enough = np.hypot(*(draw[1] - draw[0]).T) >= self.min_trip
             for (sx, sy), (gx, gy) in zip(
                 draw[0][long_enough].tolist(), draw[1][long_enough].tolist(), strict=True
             ):
-                if any(math.hypot(sx - x, sy - y) < separation for x, y in starts) or any(
-                    math.hypot(gx - x, gy - y) < separation for x, y in goals
-                ):
+                if not (start_spread.clear_of(sx, sy) and goal_spread.clear_of(gx, gy)):
                     continue
+                start_spread.add(sx, sy)
+                goal_spread.add(gx, gy)
                 starts.append((sx, sy))
                 goals.append((gx, gy))
                 if len(starts) == num_uavs:
@@ -71,6 +100,27 @@ class MissionSampler:
             f"could not place {num_uavs} missions in the area: lower missions.min_trip_m or "
             "missions.min_separation_m"
         )
+
+
+def near_pairs(position: np.ndarray, active: np.ndarray,
+               reach: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(env, i, k), i < k: the pairs of active UAVs of E fleets of J (position (E, J, 2),
+    active (E, J)) that are within ``reach`` of each other, or every pair of active UAVs
+    when J is small. O(J log J) per fleet with the tree, where all pairs are O(J^2)."""
+    e, j = active.shape
+    if j < _TREE_FROM_UAVS:
+        first, second = np.triu_indices(j, 1)
+        env = np.repeat(np.arange(e), first.size)
+        first, second = np.tile(first, e), np.tile(second, e)
+        both = active[env, first] & active[env, second]
+        return env[both], first[both], second[both]
+    found = [np.empty((0, 3), dtype=np.int64)]
+    for env in range(e):
+        members = np.flatnonzero(active[env])
+        pairs = cKDTree(position[env, members]).query_pairs(reach, output_type="ndarray")
+        found.append(np.column_stack([np.full(len(pairs), env), members[pairs]]))
+    env, first, second = np.concatenate(found).T
+    return env, first, second
 
 
 class VectorWorld:
@@ -97,7 +147,6 @@ class VectorWorld:
         self.dt = scenario.timing.step_s
         self.disconnection_limit = scenario.timing.disconnection_limit_steps
         self.step_limit = scenario.timing.episode_limit_steps
-        self._other = ~np.eye(self.num_uavs, dtype=bool)
         self.radius = np.full((num_envs, self.num_uavs), scenario.uav.radius_m)
         self.max_speed = np.full((num_envs, self.num_uavs), scenario.uav.max_speed_mps)
         e, j = num_envs, self.num_uavs
@@ -198,14 +247,19 @@ class VectorWorld:
         velocity = velocity_of(speed, heading)
         dt = self.dt
 
-        pair_distance = closest_approach(
-            self.position[:, None, :, :] - self.position[:, :, None, :],
-            velocity[:, None, :, :] - velocity[:, :, None, :],
+        # Two UAVs farther apart than both steps and the discomfort band can neither touch nor
+        # cost each other a reward: their gap counts as infinite.
+        reach = (2 * (self.max_speed.max() * dt + self.radius.max())
+                 + self.scenario.rewards.discomfort_distance_m + _PAIR_SLACK_M)
+        env, first, second = near_pairs(self.position, active, reach)
+        pair_gap = closest_approach(
+            self.position[env, second] - self.position[env, first],
+            velocity[env, second] - velocity[env, first],
             dt,
-        )
-        pair_gap = pair_distance - self.radius[:, :, None] - self.radius[:, None, :]
-        both_active = active[:, :, None] & active[:, None, :]
-        gap = np.where(both_active & self._other, pair_gap, np.inf).min(axis=2)
+        ) - self.radius[env, first] - self.radius[env, second]
+        gap = np.full(active.shape, np.inf)
+        np.minimum.at(gap, (env, first), pair_gap)
+        np.minimum.at(gap, (env, second), pair_gap)
         collided = active & (gap <= 0)
 
         goal_distance = closest_approach(self.position - self.destination, velocity, dt)

@@ -26,7 +26,7 @@ import numpy as np
 import zenoh
 
 from shared import access, bus
-from shared.features import Observation
+from shared.features import Observation, decision_reach, decision_relevant, nearby_others
 from shared.messages import (
     Action,
     AgentObservation,
@@ -46,7 +46,7 @@ from shared.messages import (
     outcome_labels,
 )
 from shared.radio import JammerParams, RadioModel
-from shared.scenario import Scenario, ScenarioError, load_scenario
+from shared.scenario import MAX_UAVS, Scenario, ScenarioError, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
 from world_sim.core import VectorWorld, episode_seed
 
@@ -199,6 +199,20 @@ class JammerDesk:
             return taken
 
 
+def fleet_observation(world: VectorWorld, scenario: Scenario) -> tuple[Observation, np.ndarray]:
+    """What every UAV of the world's one environment observes now, as the in-process
+    evaluation sees it, and which of those others (J, M) its agent is sent: only the ones
+    that can change its decision, so that a step's traffic grows with J, not J^2."""
+    w, count = world, scenario.policy.observed_uavs
+    nearby = nearby_others(w.position, w.active, count,
+                           float(decision_reach(scenario, w.radius.max())))
+    observation = Observation.of_fleet(
+        w.position, w.velocity, w.heading, w.destination, w.radius, w.max_speed, w.level,
+        w.below_steps, w.active, w.steps, nearby)
+    return observation, decision_relevant(observation, count,
+                                          decision_reach(scenario, observation.radius))
+
+
 def jammer_params(jammer: JammerInfo | None) -> JammerParams | None:
     if jammer is None:
         return None
@@ -209,6 +223,7 @@ class WorldService:
     def __init__(self, session: zenoh.Session, topics: Topics, scenario: Scenario,
                  config: WorldConfig, jammer: JammerInfo | None, log: logging.Logger):
         self.session, self.topics, self.config, self.log = session, topics, config, log
+        self.scenario = scenario
         self.world = VectorWorld(scenario, 1, config.uavs, record_measurements=True)
         self.world.set_jammer(slice(None), jammer_params(jammer))
         self.dropped = bus.Dropped(log)
@@ -306,8 +321,12 @@ class WorldService:
             self.desk.episode, self.desk.step = self.episode, step
             active = set(np.flatnonzero(world.active[0]).tolist())
             self._publish_step(active)
-            if config.clock == "lockstep":
-                until, early = started + config.deadline, True
+            if config.clock == "lockstep" or not self.steps:
+                # An agent's first decision builds its map's route grid: with many agents on
+                # few cores that takes longer than a step, so the run's first step waits, on
+                # either clock, as long as its start did.
+                wait = config.deadline if self.steps else config.start_timeout
+                until, early = started + wait, True
             else:
                 tick = max(tick, started) + period  # late: start a new schedule, never rush
                 until, early = tick, False
@@ -341,12 +360,10 @@ class WorldService:
             # known here, or its first observation could be lost.
             if uav < self.config.uavs and not bus.wait_matching(self.observation_pubs[uav], 2.0):
                 self.log.warning("agent %d is live but not subscribed", uav)
-        observation = Observation.of_fleet(
-            w.position, w.velocity, w.heading, w.destination, w.radius, w.max_speed, w.level,
-            w.below_steps, w.active, w.steps)
+        observation, relevant = fleet_observation(w, self.scenario)
         for uav in sorted(active):
             self.observation_pubs[uav].put(encode(AgentObservation.of_row(
-                observation, uav, self.episode, uav, self._reports(uav))))
+                observation, uav, self.episode, uav, self._reports(uav), relevant[uav])))
         self._publish_state()
 
     def _reports(self, uav: int) -> list[tuple[float, float, int]]:
@@ -429,8 +446,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         scenario = load_scenario(args.scenario)
         uavs = scenario.missions.uav_count if args.uavs is None else args.uavs
-        if not 1 <= uavs <= 64:
-            raise ValueError("--uavs must be between 1 and 64")
+        if not 1 <= uavs <= MAX_UAVS:
+            raise ValueError(f"--uavs must be between 1 and {MAX_UAVS}")
         for name in ("episodes", "duration", "rate", "deadline"):
             value = getattr(args, name)
             if value is not None and not value > 0:

@@ -1,0 +1,113 @@
+"""Many agent processes on one machine (``jamnav up --no-web``): lockstep steps/s with 4 and
+50 agents, launch to first step, an agent's memory and its cold start (process start to its
+first action, measured on an agent the supervisor restarts in a running system)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+from benchmarks.bench_bus import ROOT, free_endpoint, up_report
+from benchmarks.common import Figure
+from shared import bus
+from shared.messages import Action, WorldState, decode
+from shared.topics import Topics
+
+COLD_START_RUN_S = 60  # wall seconds the live system may run for the cold-start measurement
+
+
+def rss_mib(pid: int) -> float:
+    status = Path(f"/proc/{pid}/status").read_text()
+    return next(int(line.split()[1]) for line in status.splitlines()
+                if line.startswith("VmRSS")) / 1024
+
+
+def agent_pids(endpoint: str) -> dict[str, int]:
+    out = subprocess.run([sys.executable, "-m", "jamnav.cli", "status", "--json", "--endpoint",
+                          endpoint], cwd=ROOT, check=True, capture_output=True, text=True).stdout
+    return {p["id"]: p["pid"] for p in json.loads(out) if p["role"] == "agent" and "pid" in p}
+
+
+def wait_for(condition, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if value := condition():
+            return value
+        time.sleep(0.05)
+    raise RuntimeError(f"no {what} within {timeout:g} s")
+
+
+def cold_start(run_dir: Path) -> tuple[float, float]:
+    """Agents' worst resident memory (MiB) in a running 4-UAV system, and the seconds from
+    killing an agent to the first action of the one the supervisor starts in its place (real
+    time, 10 steps/s): its cold start, plus the supervisor's restart (up to 0.1 s)."""
+    endpoint = free_endpoint()
+    supervisor = subprocess.Popen(
+        [sys.executable, "-m", "jamnav.cli", "up", "--uavs", "4", "--realtime", "--duration",
+         str(COLD_START_RUN_S), "--no-web", "--no-figures", "--map", "perfect", "--endpoint",
+         endpoint, "--run-dir", str(run_dir)], cwd=ROOT, stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL)
+    # An action of the killed agent may still be in flight after the kill: the successor's
+    # first action is the first one for a step the world began after it.
+    actions: list[tuple[float, int, int]] = []  # arrival, episode, step
+    step_began: dict[tuple[int, int], float] = {}
+    lock = threading.Lock()
+
+    def on_action(sample) -> None:
+        action = decode(Action, sample.payload.to_bytes())
+        with lock:
+            actions.append((time.time(), action.episode, action.step))
+
+    def on_state(sample) -> None:
+        state = decode(WorldState, sample.payload.to_bytes())
+        with lock:
+            step_began[(state.episode, state.step)] = state.t
+
+    def successor_acted(killed: float) -> float | None:
+        with lock:
+            return next((arrival for arrival, episode, step in actions
+                         if step_began.get((episode, step), 0.0) > killed), None)
+
+    try:
+        time.sleep(2.0)  # the router is up
+        with bus.open_session("client", endpoint) as session:
+            topics = Topics()
+            session.declare_subscriber(topics.action(0), on_action)
+            session.declare_subscriber(topics.state, on_state)
+            wait_for(lambda: len(actions) > 20, 60, "steady flight")
+            pids = agent_pids(endpoint)
+            memory = max(rss_mib(pid) for pid in pids.values())
+            os.kill(pids["0"], signal.SIGKILL)
+            killed = time.time()
+            first = wait_for(lambda: successor_acted(killed), 30,
+                             "first action of the restarted agent")
+    finally:
+        supervisor.send_signal(signal.SIGTERM)
+        supervisor.wait(60)
+    return memory, first - killed
+
+
+def run() -> list[Figure]:
+    figures = []
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for uavs, episodes, target in ((4, 30, 300), (50, 3, 30)):
+            report = up_report(tmp / f"lockstep{uavs}", "--uavs", str(uavs), "--episodes",
+                               str(episodes), "--map", "perfect", "--no-web")
+            figures.append(Figure(f"lockstep steps/s, {uavs} agent processes, --no-web",
+                                  report["steps_per_second"], "steps/s", target))
+            figures.append(Figure(f"jamnav up --uavs {uavs}: launch -> first step",
+                                  report["first_step_after_s"], "s",
+                                  3 if uavs == 4 else None, True))
+        memory, start = cold_start(tmp / "cold")
+    figures.append(Figure("agent resident memory (worst of 4, flying)", memory, "MiB", 80, True))
+    figures.append(Figure("agent killed -> its successor's first action (10 steps/s)",
+                          start, "s", 1, True))
+    return figures
