@@ -10,7 +10,7 @@ import tempfile
 from pathlib import Path
 from statistics import median
 
-from benchmarks.bench_bus import _up
+from benchmarks.bench_bus import up_report
 from benchmarks.common import Figure
 from shared.scenario import load_scenario
 
@@ -39,16 +39,16 @@ def run() -> list[Figure]:
         tmp = Path(tmp)
         lockstep = ("--uavs", str(UAVS), "--episodes", EPISODES, "--map", "perfect")
         for repeat in range(REPEATS):
-            plain.append(_up(tmp / f"plain{repeat}", *lockstep)["steps_per_second"])
+            plain.append(up_report(tmp / f"plain{repeat}", *lockstep)["steps_per_second"])
             recording = tmp / f"recorded{repeat}.mcap"
-            report = _up(tmp / f"recorded{repeat}", *lockstep, "--record", str(recording))
+            report = up_report(tmp / f"recorded{repeat}", *lockstep, "--record", str(recording))
             recorded.append(report["steps_per_second"])
             sizes.append(_kib_per_uav_minute(recording, report))
             cpu.append(_recorder_cpu_per_step_us(tmp / f"recorded{repeat}", report))
         # Simulated time 20x wall time; the cloud detects the jammer set 10 s in and
         # publishes corrected maps (each a few hundred KiB of weights).
         online = tmp / "online.mcap"
-        report = _up(tmp / "online", "--uavs", str(UAVS), "--realtime", "--rate", "20",
+        report = up_report(tmp / "online", "--uavs", str(UAVS), "--realtime", "--rate", "20",
                      "--duration", "30", "--no-jammer", "--swap-jammer-at", "10",
                      "--map", "online", "--record", str(online))
         online_size = _kib_per_uav_minute(online, report)

@@ -476,34 +476,58 @@ def corrected_levels(
     *,
     shadowing_sigma_db: float | None = None,
 ) -> np.ndarray:
-    """The no-jammer map corrected with an estimated jammer, at points ``xy`` (..., 2).
+    """The no-jammer map corrected with an estimated jammer, at points ``xy`` (..., 2): the
+    most probable level of ``corrected_level_probabilities``. With ``present`` false the
+    no-jammer map stands."""
+    xy = np.asarray(xy, dtype=np.float64)
+    if not estimate.present:
+        return np.asarray(no_jammer_levels_at(xy.reshape(-1, 2))).reshape(xy.shape[:-1])
+    probabilities = corrected_level_probabilities(
+        scenario, no_jammer_levels_at, estimate, xy, shadowing_sigma_db=shadowing_sigma_db)
+    return probabilities.argmax(axis=-1).astype(np.int64)
+
+
+def corrected_level_probabilities(
+    scenario: Scenario,
+    no_jammer_levels_at: Callable[[np.ndarray], np.ndarray],
+    estimate: JammerEstimate,
+    xy: np.ndarray,
+    *,
+    shadowing_sigma_db: float | None = None,
+    report_sigma_db: float = 0.0,
+) -> np.ndarray:
+    """How probable each level is at points ``xy`` (..., 2) by the no-jammer map corrected
+    with an estimated jammer: shape (..., levels).
 
     At each point the no-jammer map's level says in which band the world's no-jammer SINR
     lies, and the ideal model (give or take ``shadowing_sigma_db``; None fits it to the
     map's levels at ``xy``, see ``fit_shadowing_sigma``) where in the band; the estimated
-    jammer takes the ideal model's loss off it. The corrected level is the most
-    probable one. The map was learned from measurements and so carries the GBS shadowing;
-    the ideal model's own levels do not (they agree with the world on ~61 % of icc2021-
-    shadowed), so taking them where the jammer matters loses more than it corrects.
-    ``no_jammer_levels_at`` maps points (m, 2) to levels, e.g. the no-jammer SINR network on
-    their features. With ``present`` false the no-jammer map stands.
+    jammer takes the ideal model's loss off it. ``report_sigma_db`` widens that spread for
+    what a receiver reports rather than what is there. The map was learned from
+    measurements and so carries the GBS shadowing; the ideal model's own levels do not
+    (they agree with the world on ~61 % of icc2021-shadowed), so taking them where the jammer
+    matters loses more than it corrects. ``no_jammer_levels_at`` maps points (m, 2) to
+    levels, e.g. the no-jammer SINR network on their features. With ``present`` false, the
+    no-jammer map's level is certain.
     """
     xy = np.asarray(xy, dtype=np.float64)
     flat = xy.reshape(-1, 2)
-    base = np.asarray(no_jammer_levels_at(flat)).reshape(-1)
+    base = np.asarray(no_jammer_levels_at(flat)).reshape(-1).astype(np.int64)
+    level_count = scenario.channel.level_count
     if not estimate.present:
-        return base.reshape(xy.shape[:-1])
+        return np.eye(level_count)[base].reshape(*xy.shape[:-1], level_count)
     radio = RadioModel(scenario, shadowed=False)
     jammer = JammerParams(estimate.x, estimate.y, estimate.power_w, scenario.jammer.height_m)
     ideal_db = radio.evaluate(flat).sinr_db
     loss_db = ideal_db - radio.evaluate(flat, jammer).sinr_db
-    band_low, band_high = _band_edges(radio, base.astype(np.int64))
+    band_low, band_high = _band_edges(radio, base)
     if shadowing_sigma_db is None:
         shadowing_sigma_db = _fitted_sigma(ideal_db, band_low, band_high)
+    sd_db = math.hypot(shadowing_sigma_db, report_sigma_db)
     bounds = np.concatenate([[-np.inf], radio.level_edges_db, [np.inf]])[:, None]
     # Level k needs the no-jammer SINR in [bounds_k + loss, bounds_k+1 + loss) and its band.
     low = np.maximum(band_low, bounds[:-1] + loss_db)
     high = np.minimum(band_high, bounds[1:] + loss_db)
-    log_odds = _log_band_probability((low - ideal_db) / shadowing_sigma_db,
-                                     (high - ideal_db) / shadowing_sigma_db)
-    return log_odds.argmax(axis=0).astype(base.dtype).reshape(xy.shape[:-1])
+    log_mass = _log_band_probability((low - ideal_db) / sd_db, (high - ideal_db) / sd_db)
+    mass = np.exp(log_mass - log_mass.max(axis=0))
+    return (mass / mass.sum(axis=0)).T.reshape(*xy.shape[:-1], level_count)

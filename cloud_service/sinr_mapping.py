@@ -33,9 +33,12 @@ import torch
 from torch.nn import functional
 
 from cloud_service.jammer_estimation import (
+    REPORT_SIGMA_DB,
     JammerEstimate,
+    corrected_level_probabilities,
     corrected_levels,
     estimate_jammer,
+    fit_shadowing_sigma,
     positions_from_features,
 )
 from cloud_service.sinr_memory import SinrMemory, Uploads
@@ -424,6 +427,7 @@ class OnlineSinrMapper:
         self.background = background
         self.events: list[dict[str, Any]] = []
         self.estimate: JammerEstimate | None = None
+        self._estimate_sigma_db = 0.0  # the shadowing fitted beside ``estimate``
         self._network = network
         self._base = base_network or network
         self._accuracy = accuracy
@@ -474,9 +478,8 @@ class OnlineSinrMapper:
                 probabilities = predict_probabilities(self._network, stored.features)
                 self._recent.extend((probabilities.argmax(-1) == stored.levels).tolist())
                 if self._change is None:
-                    check = self.detector.update(
-                        np.take_along_axis(probabilities, stored.levels[:, None], -1)[:, 0],
-                        stored.sources, stored.times)
+                    check = self.detector.update(self._report_probability(stored, probabilities),
+                                                 stored.sources, stored.times)
                     if check is not None and check.fired:
                         self._on_change(check)
                 else:
@@ -493,6 +496,24 @@ class OnlineSinrMapper:
             else:
                 self._run(job)
         return IngestReport(len(stored), duplicates, check)
+
+    def _report_probability(self, stored: MeasurementBatch,
+                            probabilities: np.ndarray) -> np.ndarray:
+        """How probable each stored report was: by the map in service, or, where a jammer
+        estimate stands behind it, by that estimate's model if it expected the report more.
+        A DNN fitted to a jammed zone errs along the zone's edge, and the lookahead flies
+        its UAVs along that edge: one UAV's reports there contradict the map again and
+        again (in-process, a false change every 15-25 min of flight with a still jammer).
+        A moved or retuned jammer contradicts the estimate too, so a change still shows."""
+        reported = np.take_along_axis(probabilities, stored.levels[:, None], -1)[:, 0]
+        if self.estimate is None or not self.estimate.present:
+            return reported
+        model = corrected_level_probabilities(
+            self.scenario, self._base_levels, self.estimate,
+            positions_from_features(self.scenario, stored.features),
+            shadowing_sigma_db=self._estimate_sigma_db, report_sigma_db=REPORT_SIGMA_DB)
+        # fmax: a report whose position cannot be recovered has the map's probability only.
+        return np.fmax(reported, np.take_along_axis(model, stored.levels[:, None], -1)[:, 0])
 
     def _on_change(self, check: DetectorCheck) -> None:
         start = self.detector.change_start
@@ -543,12 +564,15 @@ class OnlineSinrMapper:
         """Fit the DNN to the post-change uploads (plus the estimate's prior) and publish."""
         config = self.retrain
         features, levels = data.features, data.levels
-        start_from = self._network
+        start_from, sigma_db = self._network, 0.0
         if estimate is not None:
             prior_xy = uniform_positions(self.scenario, config.prior_points,
                                          np.random.default_rng(self._seed + self._version))
             prior_features = scenario_features(self.scenario, prior_xy)
-            prior_levels = corrected_levels(self.scenario, self._base_levels, estimate, prior_xy)
+            sigma_db = fit_shadowing_sigma(RadioModel(self.scenario, shadowed=False), prior_xy,
+                                           self._base_levels(prior_xy))
+            prior_levels = corrected_levels(self.scenario, self._base_levels, estimate,
+                                            prior_xy, shadowing_sigma_db=sigma_db)
             features = np.concatenate([features, prior_features])
             levels = np.concatenate([levels, prior_levels])
             start_from = self._base
@@ -562,7 +586,7 @@ class OnlineSinrMapper:
             self._network = result.network
             self._version += 1
             self._accuracy = result.accuracy
-            self.estimate = estimate
+            self.estimate, self._estimate_sigma_db = estimate, sigma_db
             published = PublishedWeights(weights, sha256(weights), self._version,
                                          result.accuracy, estimate)
             if estimate is not None:

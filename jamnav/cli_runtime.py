@@ -125,13 +125,10 @@ def cmd_up(args: argparse.Namespace) -> int:
         output_path("--report", args.report)
     if args.record:
         output_path("--record", args.record)
-        if args.secure or args.credentials is not None:
-            raise UsageError("--record: a secure system shows its operator only the events, "
-                             "world state and jammer estimates; record those with "
-                             "`jamnav record --credentials`")
     Topics(args.prefix)  # refuses a malformed prefix before anything starts
     if args.credentials is not None:  # refuses a file without every role's login, too
-        access.load(args.credentials, access.roles(uavs, linked=args.routers > 1))
+        access.load(args.credentials, access.roles(uavs, linked=args.routers > 1,
+                                                   recorder=args.record is not None))
     endpoint = endpoint_from(args.endpoint)
     agent_endpoint, link_endpoint = _second_router(args, endpoint)
     web = None if args.no_web else listen.settle(args.web)
@@ -288,10 +285,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     out = output_path("--out", args.out)
     topics = Topics(args.prefix)
     endpoint = endpoint_from(args.endpoint)
-    login = access.login_for(args.credentials, access.OPERATOR)
-    # A secure router lets the operator subscribe to its own keys only, never to everything.
-    keys = [topics.everything] if login is None else access.grants(
-        topics, access.OPERATOR)["subscribe"]
+    login = access.login_for(args.credentials, access.RECORDER)
     log = bus.setup_logging("recorder")
     stop = threading.Event()
     bus.stop_on_signals(stop)
@@ -299,7 +293,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         # Linux sets it per thread: this one, which writes, yields; zenoh's, which receive
         # and only queue, keep up.
         os.nice(RECORDER_NICENESS)
-        summary = record(session, topics, out, keys, stop, args.duration, log)
+        summary = record(session, topics, out, stop, args.duration, log)
     refused = sum(summary.refused.values())
     print(f"recorded {summary.messages} messages on {summary.keys} keys to {summary.path} "
           f"({summary.cpu_s:.2f} s CPU" + (f", {refused} refused: {summary.refused})"

@@ -35,7 +35,7 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from shared import bus
+from shared import access, bus
 from shared.messages import (
     Action,
     AgentObservation,
@@ -53,7 +53,6 @@ from shared.topics import Topics, uav_in_key
 
 METADATA = "jamnav"  # the metadata record that names the recorded prefix
 VERBATIM_MEDIA_TYPE = "application/msgpack"
-RECORDER_ROLE = "recorder"  # its liveliness token: <prefix>/alive/recorder/<pid>
 DRAIN_EVERY_S = 0.05
 # The recorder's writing thread yields the CPU to the system it records: on arrival a message
 # is only queued, and written when the others wait (a lockstep world waits every step).
@@ -178,12 +177,11 @@ class RecordSummary:
     cpu_s: float  # the recording process's, zenoh's threads included, while it recorded
 
 
-def record(session: zenoh.Session, topics: Topics, path: Path, keys: list[str],
-           stop: threading.Event, duration: float | None, log: logging.Logger
-           ) -> RecordSummary:
-    """Write what is put on ``keys`` to ``path`` until ``stop`` is set or ``duration`` seconds
+def record(session: zenoh.Session, topics: Topics, path: Path, stop: threading.Event,
+           duration: float | None, log: logging.Logger) -> RecordSummary:
+    """Write what is put under the prefix to ``path`` until ``stop`` is set or ``duration`` seconds
     have passed. Zenoh's delivery thread only queues a sample; this thread writes it. The
-    liveliness token ``<prefix>/alive/recorder/<pid>`` says that the subscriptions are in."""
+    liveliness token ``<prefix>/alive/recorder/<pid>`` says that the subscription is in."""
     inbox: queue.SimpleQueue = queue.SimpleQueue()
 
     def arrived(sample: zenoh.Sample) -> None:
@@ -194,10 +192,9 @@ def record(session: zenoh.Session, topics: Topics, path: Path, keys: list[str],
     writer = RecordingWriter(path, topics.prefix)
     declared: list[Any] = []
     try:
-        for key in keys:
-            declared.append(session.declare_subscriber(key, arrived))
-        declared.append(bus.declare_alive(session, topics, RECORDER_ROLE, os.getpid()))
-        log.info("recording %s to %s", ", ".join(keys), path)
+        declared.append(session.declare_subscriber(topics.everything, arrived))
+        declared.append(bus.declare_alive(session, topics, access.RECORDER, os.getpid()))
+        log.info("recording %s to %s", topics.everything, path)
         deadline = None if duration is None else time.monotonic() + duration
         while not stop.wait(DRAIN_EVERY_S):
             _drain(inbox, writer, topics, refused)

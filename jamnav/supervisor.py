@@ -192,11 +192,16 @@ class Supervisor:
             link = ["--listen" if ident == 0 else "--connect", c.link_endpoint]
             argv += ["--endpoint", c.endpoint if ident == 0 else c.agent_endpoint, *link,
                      "--zenoh-config", str(self.link_files[str(ident)].zenoh_config)]
-        if self.credentials_path is not None:
-            argv += ["--credentials", str(self.credentials_path)]
-            if c.routers > 1:
-                argv += ["--roles", ROUTER_ROLES[ident]]
+        argv += self._credentials_argv()
+        if self.credentials_path is not None and c.routers > 1:
+            # The recorder logs in beside the supervisor.
+            recorder = f",{access.RECORDER}" if ident == 0 and c.record is not None else ""
+            argv += ["--roles", ROUTER_ROLES[ident] + recorder]
         return argv
+
+    def _credentials_argv(self) -> list[str]:
+        return [] if self.credentials_path is None else [
+            "--credentials", str(self.credentials_path)]
 
     def _argv(self, child: Child) -> list[str]:
         c, python = self.config, [sys.executable, "-m"]
@@ -204,11 +209,10 @@ class Supervisor:
             return python + ["jamnav.cli", "router", *self._router_argv(child.ident)]
         if child.role == "recorder":
             return python + ["jamnav.cli", "record", "--endpoint", c.endpoint, "--prefix",
-                             c.prefix, "--out", str(recording_path(c.record, child.restarts))]
+                             c.prefix, "--out", str(recording_path(c.record, child.restarts)),
+                             *self._credentials_argv()]
         endpoint = c.agent_endpoint if child.role == "agent" and c.routers > 1 else c.endpoint
-        common = ["--endpoint", endpoint, "--prefix", c.prefix]
-        if self.credentials_path is not None:
-            common += ["--credentials", str(self.credentials_path)]
+        common = ["--endpoint", endpoint, "--prefix", c.prefix, *self._credentials_argv()]
         if c.scenario:
             common += ["--scenario", c.scenario]
         if child.role == "console":

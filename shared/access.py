@@ -1,11 +1,13 @@
 """Who may do what on the bus: the logins of a secure system and the access rules its router
 enforces (zenoh's user/password authentication and access control).
 
-Every process logs in as its role (``operator``, ``world``, ``cloud``, ``agent-<uav>``); the
+Every process logs in as its role (``operator``, ``world``, ``cloud``, ``agent-<uav>``,
+``recorder``); the
 router accepts only the logins of the credentials file and, for each role, exactly the traffic
 that role needs: only the operator moves the jammer, an agent publishes only its own action and
 uploads only its own measurements, only the world publishes state and observations, only the
-cloud publishes weights. Denied traffic is dropped silently by the router.
+cloud publishes weights; the recorder only listens, to everything. Denied traffic is dropped
+silently by the router.
 
 A system of linked routers (one per host) spreads its roles over them: each router accepts the
 logins of the roles that connect to it and enforces their rules, and trusts what a linked
@@ -44,9 +46,10 @@ from shared.topics import Topics
 
 CREDENTIALS_FILE = "credentials.json"
 OPERATOR, WORLD, CLOUD, ROUTER = "operator", "world", "cloud", "router"
+RECORDER = "recorder"  # its liveliness token: <prefix>/alive/recorder/<pid>
 # The common name of every router certificate of a system; only its authority signs one.
 LINKED_ROUTER = "jamnav-router"
-_ROLE = re.compile(r"^(operator|world|cloud|router|agent-(0|[1-9][0-9]*))$")
+_ROLE = re.compile(r"^(operator|world|cloud|router|recorder|agent-(0|[1-9][0-9]*))$")
 _AGENT = re.compile(r"^agent-([0-9]+)$")
 
 
@@ -58,11 +61,11 @@ def agent_role(uav: int) -> str:
     return f"agent-{uav}"
 
 
-def roles(uavs: int, linked: bool = False) -> list[str]:
+def roles(uavs: int, linked: bool = False, recorder: bool = False) -> list[str]:
     """Every role of a system of ``uavs`` UAVs, with the routers' login if they are
-    ``linked``."""
+    ``linked`` and the recorder's if it has one."""
     return [OPERATOR, WORLD, CLOUD, *(agent_role(uav) for uav in range(uavs)),
-            *([ROUTER] if linked else [])]
+            *([ROUTER] if linked else []), *([RECORDER] if recorder else [])]
 
 
 class Login(BaseModel):
@@ -110,10 +113,10 @@ class Credentials(RootModel[dict[str, Login]]):
 
 
 def generate(uavs: int, linked: bool = False) -> Credentials:
-    """Fresh credentials for every role of a system of ``uavs`` UAVs (and its ``linked``
-    routers); each user is its role."""
+    """Fresh credentials for every role of a system of ``uavs`` UAVs (its ``linked`` routers
+    and a recorder included); each user is its role."""
     return Credentials({role: Login(user=role, password=secrets.token_urlsafe(24))
-                        for role in roles(uavs, linked)})
+                        for role in roles(uavs, linked, recorder=True)})
 
 
 def write_private(path: Path, text: str) -> None:
@@ -200,6 +203,8 @@ def grants(topics: Topics, role: str) -> dict[str, list[str]]:
                 "subscribe": [f"{topics.prefix}/event/**", topics.state,
                               topics.jammer_estimate, topics.sinr_map],
                 "watch": [f"{topics.prefix}/alive/**"]}
+    if role == RECORDER:  # what it hears is what a replay puts back: all of it
+        return {"subscribe": [topics.everything], "announce": [topics.alive(RECORDER)]}
     if role == WORLD:
         return {"publish": [topics.observation("*"), topics.state,
                             *_events(topics, JammerChanged, UavOutcomes, RunFinished)],

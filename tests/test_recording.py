@@ -9,7 +9,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import msgpack
@@ -35,11 +34,13 @@ def jamnav_process(*argv: str) -> subprocess.Popen:
 
 @pytest.fixture(scope="module")
 def recorded_run(tmp_path_factory) -> tuple[Path, dict]:
-    """A short lockstep run of the whole system, recorded: the file and the run's report."""
+    """A short lockstep run of the whole system, recorded: the file and the run's report.
+    Secure, so that the router's rules, which deny what no role needs, let the recorder hear
+    everything; ``jamnav record`` below records a system without them."""
     run_dir = tmp_path_factory.mktemp("recorded") / "run"
     process = jamnav_process("up", "--uavs", str(UAVS), "--episodes", "2", "--lockstep",
                              "--map", "perfect", "--seed", "4", "--no-figures", "--endpoint",
-                             free_endpoint(), "--run-dir", str(run_dir),
+                             free_endpoint(), "--run-dir", str(run_dir), "--secure",
                              "--record", str(run_dir / "run.mcap"))
     out, err = Drained(process).wait(120)
     assert process.returncode == 0, err[-2000:]
@@ -145,15 +146,18 @@ def test_a_missing_or_damaged_recording_is_one_line_and_exit_2(recorded_run, tmp
         assert err.startswith(f"jamnav: error: recording {path}")
 
 
-def test_up_refuses_to_record_a_secure_system_in_one_line(tmp_path, capsys):
-    code = jamnav(["up", "--secure", "--record", str(tmp_path / "r.mcap"), "--endpoint",
-                   free_endpoint(), "--run-dir", str(tmp_path / "run")])
+def test_a_credentials_file_without_a_recorder_login_is_one_line(tmp_path, capsys):
+    path = tmp_path / "credentials.json"
+    access.save(access.generate(2).only(["operator", "world", "cloud", "agent-*"]), path)
+    code = jamnav(["up", "--uavs", "2", "--credentials", str(path), "--record",
+                   str(tmp_path / "r.mcap"), "--endpoint", free_endpoint(),
+                   "--run-dir", str(tmp_path / "run")])
     err = capsys.readouterr().err
-    assert code == 2 and err.count("\n") == 1 and "jamnav record --credentials" in err
+    assert code == 2 and err.count("\n") == 1 and "no login for role 'recorder'" in err
     assert not (tmp_path / "run").exists()
 
 
-def test_on_a_secure_system_the_operator_records_what_it_may_see(tmp_path):
+def test_on_a_secure_system_the_recorder_hears_everything_and_may_send_nothing(tmp_path):
     credentials, endpoint, topics = access.generate(1), free_endpoint(), Topics()
     access.save(credentials, tmp_path / "credentials.json")
     outcome = encode(UavOutcomes(t=1.0, source="world", episode=0, seed=0, steps=3,
@@ -165,14 +169,20 @@ def test_on_a_secure_system_the_operator_records_what_it_may_see(tmp_path):
             bus.open_session("client", endpoint, login=credentials.login("world")) as world, \
             bus.open_session("client", endpoint, login=credentials.login("agent-0")) as agent:
         recorder = jamnav_process("record", "--endpoint", endpoint, "--credentials",
-                                  str(tmp_path / "credentials.json"), "--duration", "4",
+                                  str(tmp_path / "credentials.json"), "--duration", "6",
                                   "--out", str(tmp_path / "secure.mcap"))
-        while recorder.poll() is None:  # the operator may not announce itself: keep sending
-            world.put(topics.event("uav_outcomes"), outcome)
-            world.put(topics.state, state)
-            agent.put(topics.action(0), action)
-            time.sleep(0.1)
-    assert recorder.returncode == 0, recorder.stderr.read()
+        with bus.open_session("client", endpoint, login=credentials.login("operator")) as op:
+            wait_until(lambda: list(op.liveliness().get(topics.alive(access.RECORDER),
+                                                        timeout=0.5)), 30, "the recorder")
+        with bus.open_session("client", endpoint,
+                              login=credentials.login(access.RECORDER)) as impostor:
+            impostor.put(topics.state, state)  # denied: a recorder only listens
+        world.put(topics.event("uav_outcomes"), outcome)
+        world.put(topics.state, state)
+        agent.put(topics.action(0), action)
+        out, err = Drained(recorder).wait(30)
+    assert recorder.returncode == 0, err
     with Recording(tmp_path / "secure.mcap") as recording:
-        recorded = {(item.key, item.payload) for item in recording.messages()}
-    assert recorded == {(topics.event("uav_outcomes"), outcome), (topics.state, state)}
+        recorded = [(item.key, item.payload) for item in recording.messages()]
+    assert sorted(recorded) == sorted([(topics.event("uav_outcomes"), outcome),
+                                       (topics.state, state), (topics.action(0), action)])

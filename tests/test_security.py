@@ -37,9 +37,9 @@ def test_credentials_are_private_hold_every_role_and_bad_files_are_refused(tmp_p
     assert stat.S_IMODE(path.stat().st_mode) == 0o600
     credentials = access.load(path, access.roles(3))
     assert sorted(credentials.root) == ["agent-0", "agent-1", "agent-2", "cloud", "operator",
-                                        "world"]
+                                        "recorder", "world"]
     assert all(login.user == role for role, login in credentials.root.items())
-    assert len({login.password for login in credentials.root.values()}) == 6
+    assert len({login.password for login in credentials.root.values()}) == 7
 
     def refused(path, roles=()) -> str:
         with pytest.raises(access.AccessError) as caught:
