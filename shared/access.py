@@ -2,12 +2,11 @@
 enforces (zenoh's user/password authentication and access control).
 
 Every process logs in as its role (``operator``, ``world``, ``cloud``, ``agent-<uav>``,
-``recorder``); the
-router accepts only the logins of the credentials file and, for each role, exactly the traffic
-that role needs: only the operator moves the jammer, an agent publishes only its own action and
-uploads only its own measurements, only the world publishes state and observations, only the
-cloud publishes weights; the recorder only listens, to everything. Denied traffic is dropped
-silently by the router.
+``recorder``); the router accepts only the logins of the credentials file and, for each role,
+exactly the traffic that role needs: only the operator moves the jammer, an agent publishes
+only its own action and uploads only its own measurements, only the world publishes state and
+observations, only the cloud publishes weights; the recorder only listens, to everything.
+Denied traffic is dropped silently by the router.
 
 A system of linked routers (one per host) spreads its roles over them: each router accepts the
 logins of the roles that connect to it and enforces their rules, and trusts what a linked
