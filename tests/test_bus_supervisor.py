@@ -26,21 +26,23 @@ def run_json(capsys, *argv: str):
     return code, captured.out, captured.err
 
 
+@pytest.mark.parametrize("uavs, episodes", [(3, 2), (16, 1)])
 def test_up_runs_seeded_episodes_like_eval_and_leaves_nothing_behind(supervisor, capsys,
-                                                                     tmp_path):
+                                                                     tmp_path, uavs, episodes):
     endpoint = free_endpoint()
-    process = supervisor("--uavs", "3", "--episodes", "2", "--lockstep", "--map", "perfect",
-                         "--jammer", "0,0,1", "--seed", "5", "--no-figures", "--endpoint",
-                         endpoint, "--run-dir", str(tmp_path / "run"))
-    out, err = process.communicate(timeout=150)
+    process = supervisor("--uavs", str(uavs), "--episodes", str(episodes), "--lockstep",
+                         "--map", "perfect", "--jammer", "0,0,1", "--seed", "5",
+                         "--no-figures", "--endpoint", endpoint,
+                         "--run-dir", str(tmp_path / "run"))
+    out, err = process.communicate(timeout=150 + 10 * uavs)
     assert process.returncode == 0, err[-2000:]
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     assert sorted(p["role"] for p in report["processes"]) == [
-        "agent", "agent", "agent", "cloud", "router", "world"]
+        *["agent"] * uavs, "cloud", "router", "world"]
     assert all(gone(p["pid"]) for p in report["processes"])
-    code, eval_out, _ = run_json(capsys, "eval", "--method", "perfect", "--episodes", "2",
-                                 "--uavs", "3", "--seed", "5", "--jammer", "0,0,1",
-                                 "--per-episode", "--json")
+    code, eval_out, _ = run_json(capsys, "eval", "--method", "perfect", "--episodes",
+                                 str(episodes), "--uavs", str(uavs), "--seed", "5",
+                                 "--jammer", "0,0,1", "--per-episode", "--json")
     expected = json.loads(eval_out)
     assert report["outcomes"] == expected["outcomes"]
     for key in ("success_rate", "disconnection_rate", "collision_rate", "timeout_rate"):
@@ -48,7 +50,7 @@ def test_up_runs_seeded_episodes_like_eval_and_leaves_nothing_behind(supervisor,
     assert report["steps_per_second"] > 0 and report["missed_deadlines"] == 0
     assert report["restarts"] == {"router": 0, "world": 0, "cloud": 0, "agent": 0}
     assert report["dropped_messages"] == {}
-    assert [e["type"] for e in report["events"]].count("uav_outcomes") == 2
+    assert [e["type"] for e in report["events"]].count("uav_outcomes") == episodes
     assert all(isinstance(e["t"], float) for e in report["events"])
     assert "success" in out and report["stopped_by"] == "end"
 
