@@ -3,7 +3,8 @@
 A controller turns the world's state into commanded speeds and headings for every UAV. The
 lookahead controller sees only what each UAV observes (``Observation``) and a radio map; the
 baselines (ORCA, straight flight) need no map. Training, validation and ``jamnav eval`` all
-fly episodes through ``run_episodes`` or the same controllers.
+fly episodes through ``fly_episodes`` (``run_episodes`` for evaluation) with these
+controllers.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from shared.policy import (
 )
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
-from world_sim.core import VectorWorld, episode_seed
+from world_sim.core import StepResult, VectorWorld, episode_seed
 
 MapFor = Callable[[VectorWorld, np.ndarray], RadioMap]
 JammerSchedule = Callable[[int], JammerSetting | None]  # episode -> its jammer
@@ -150,10 +151,88 @@ class StraightController:
         return _speed_heading(world, preferred)
 
 
+class EpisodeHooks:
+    """What a flight of episodes (``fly_episodes``) does besides flying; nothing by default."""
+
+    def start(self, env: int, episode: int) -> None:
+        """Set up slot ``env`` for ``episode`` (its jammer, its missions)."""
+
+    def before_step(self, running: np.ndarray) -> None:
+        """Called before every step; ``running``: (E,) the slots flying an episode."""
+
+    def after_step(self, result: StepResult, slot_episode: np.ndarray,
+                   running: np.ndarray) -> None:
+        """Called after every step; ``slot_episode``: (E,) the episode each slot flew."""
+
+    def end(self, env: int, episode: int) -> None:
+        """Book the ended ``episode`` of slot ``env``, before the slot takes the next one."""
+
+
+def fly_episodes(world: VectorWorld, controller: Controller, episodes: range,
+                 hooks: EpisodeHooks) -> None:
+    """Fly ``episodes`` in the world's environment slots, all slots stepping together; a slot
+    takes the next episode as soon as its current one ends, and idles (no active UAV) when
+    none is left."""
+    slot_episode = np.full(world.num_envs, -1)
+    upcoming = iter(episodes)
+
+    def refill(env: int) -> None:
+        episode = next(upcoming, -1)
+        slot_episode[env] = episode
+        if episode >= 0:
+            hooks.start(env, episode)
+
+    for env in range(world.num_envs):
+        refill(env)
+    while (running := slot_episode >= 0).any():
+        hooks.before_step(running)
+        result = world.step(*controller.act(world))
+        hooks.after_step(result, slot_episode, running)
+        for env in np.flatnonzero(result.env_done & running):
+            hooks.end(env, slot_episode[env])
+            refill(env)
+
+
 class EpisodeResults(NamedTuple):
     outcomes: np.ndarray  # (episodes, J) Outcome codes
     returns: np.ndarray  # (episodes, J) accumulated reward per UAV
     steps: np.ndarray  # (episodes,) steps until every UAV finished
+
+
+class EvaluationBook(EpisodeHooks):
+    """Evaluation's side of a flight: each episode's jammer, then its outcomes, returns and
+    steps."""
+
+    def __init__(
+        self,
+        world: VectorWorld,
+        episodes: int,
+        seed: int,
+        jammer_at: JammerSchedule,
+        on_step: Callable[[VectorWorld], None] | None,
+        on_episode: Callable[[int], None] | None,
+    ):
+        self.world, self.seed, self.jammer_at = world, seed, jammer_at
+        self.on_step, self.on_episode = on_step, on_episode
+        self.results = EpisodeResults(np.zeros((episodes, world.num_uavs), dtype=np.int8),
+                                      np.zeros((episodes, world.num_uavs)),
+                                      np.zeros(episodes, dtype=np.int64))
+
+    def start(self, env: int, episode: int) -> None:
+        self.world.set_jammer([env], jammer_params(self.world.scenario, self.jammer_at(episode)))
+        self.world.reset([env], [episode_seed(self.seed, episode)])
+
+    def after_step(self, result: StepResult, slot_episode: np.ndarray,
+                   running: np.ndarray) -> None:
+        if self.on_step is not None:
+            self.on_step(self.world)
+        self.results.returns[slot_episode[running]] += result.reward[running]
+
+    def end(self, env: int, episode: int) -> None:
+        self.results.outcomes[episode] = self.world.status[env]
+        self.results.steps[episode] = self.world.steps[env]
+        if self.on_episode is not None:
+            self.on_episode(episode)
 
 
 def run_episodes(
@@ -173,39 +252,9 @@ def run_episodes(
     are independent of ``num_envs``."""
     jammer_at = jammer if callable(jammer) else (lambda _episode: jammer)
     world = VectorWorld(scenario, min(num_envs, episodes), num_uavs, record_measurements)
-    outcomes = np.zeros((episodes, world.num_uavs), dtype=np.int8)
-    returns = np.zeros((episodes, world.num_uavs))
-    steps = np.zeros(episodes, dtype=np.int64)
-    slot_episode = np.arange(world.num_envs)
-
-    def start(env: int, episode: int) -> None:
-        world.set_jammer([env], jammer_params(scenario, jammer_at(episode)))
-        world.reset([env], [episode_seed(seed, episode)])
-
-    for env in slot_episode:
-        start(env, env)
-    running = np.ones(world.num_envs, dtype=bool)
-    next_episode = world.num_envs
-    while running.any():
-        speed, heading = controller.act(world)
-        result = world.step(speed, heading)
-        if on_step is not None:
-            on_step(world)
-        returns[slot_episode[running]] += result.reward[running]
-        for env in np.flatnonzero(result.env_done & running):
-            episode = slot_episode[env]
-            outcomes[episode] = world.status[env]
-            steps[episode] = world.steps[env]
-            if on_episode is not None:
-                on_episode(episode)
-            if next_episode < episodes:
-                slot_episode[env] = next_episode
-                start(env, next_episode)
-                next_episode += 1
-            else:
-                running[env] = False
-                # A finished slot idles with no active UAV until the others are done.
-    return EpisodeResults(outcomes, returns, steps)
+    book = EvaluationBook(world, episodes, seed, jammer_at, on_step, on_episode)
+    fly_episodes(world, controller, range(episodes), book)
+    return book.results
 
 
 def outcome_rates(outcomes: np.ndarray) -> dict[str, float]:

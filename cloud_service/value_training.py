@@ -18,9 +18,13 @@ Checkpoints make a run resumable.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
+import os
+import shutil
 import subprocess
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -29,13 +33,15 @@ from pathlib import Path
 import numpy as np
 import torch
 from safetensors.numpy import load_file as load_arrays
-from safetensors.numpy import save_file as save_arrays
+from safetensors.numpy import save as arrays_to_bytes
 
 from cloud_service.rollout import (
+    EpisodeHooks,
     LookaheadController,
     OrcaController,
     RasterMaps,
     fleet_observation,
+    fly_episodes,
     outcome_rates,
     perfect_maps,
     run_episodes,
@@ -48,7 +54,7 @@ from shared.paper import TABLE_I_JAMMERS
 from shared.policy import LookaheadPolicy
 from shared.radio import JammerParams
 from shared.scenario import Scenario
-from world_sim.core import VectorWorld, episode_seed
+from world_sim.core import StepResult, VectorWorld, episode_seed
 
 VALIDATION_SEED = 20210614  # fixed: every model is scored on the same episodes
 TRAINING_JAMMER_STREAM = 7  # separates the jammer schedule's random stream from missions'
@@ -207,8 +213,62 @@ def straight_line_bound(scenario: Scenario, start: np.ndarray, goal: np.ndarray)
     return scenario.rewards.arrival + scenario.rewards.step * steps
 
 
+class TrainingFlight(EpisodeHooks):
+    """Training's side of a flight: the training jammer schedule, the state each UAV acted
+    from and the reward it received (with the disconnection penalty), and each episode's
+    statistics."""
+
+    def __init__(
+        self,
+        world: VectorWorld,
+        maps: RasterMaps,
+        options: MethodOptions,
+        seed: int,
+        on_missions: Callable[[list[tuple[np.ndarray, np.ndarray]]], None],
+        on_episode: Callable[[EpisodeStats], None],
+    ):
+        self.world, self.maps, self.options, self.seed = world, maps, options, seed
+        self.on_missions, self.on_episode = on_missions, on_episode
+        size = joint_state_size(world.scenario, options)
+        self.recorder = TrajectoryRecorder(world.num_envs, world.num_uavs, world.step_limit, size)
+        self.returns = np.zeros((world.num_envs, world.num_uavs))
+        self.decisions = 0
+        # From before_step to after_step: the rows of the UAVs about to act, and their states.
+        self.rows = np.zeros(0, dtype=np.int64)
+        self.states = np.zeros((0, size), dtype=np.float32)
+
+    def start(self, env: int, episode: int) -> None:
+        scenario = self.world.scenario
+        period = episode // scenario.training.jammer_change_every_episodes
+        self.world.set_jammer([env], training_jammer(scenario, self.seed, period))
+        self.world.reset([env], [episode_seed(self.seed, episode)])
+        self.returns[env] = 0.0
+
+    def before_step(self, running: np.ndarray) -> None:
+        world, options = self.world, self.options
+        self.rows = np.flatnonzero((world.active & running[:, None]).ravel())
+        self.states = observation_state(
+            fleet_observation(world).select(self.rows), world.scenario, options,
+            self.maps(world, self.rows) if options.route_distance else None)
+
+    def after_step(self, result: StepResult, slot_episode: np.ndarray,
+                   running: np.ndarray) -> None:
+        self.decisions += self.rows.size
+        lost = result.finished & (self.world.status == Outcome.DISCONNECTION)
+        reward = result.reward + self.options.disconnection_reward * lost
+        self.recorder.record(self.states, self.rows, reward)
+        self.returns += reward
+        self.on_missions([self.recorder.take(e, u)
+                          for e, u in zip(*np.nonzero(result.finished), strict=True)])
+
+    def end(self, env: int, episode: int) -> None:
+        world = self.world
+        bound = straight_line_bound(world.scenario, world.start[env], world.destination[env])
+        self.on_episode(EpisodeStats(int(episode), world.status[env].copy(),
+                                     float(self.returns[env].mean()), float(bound.mean())))
+
+
 def fly(
-    scenario: Scenario,
     world: VectorWorld,
     controller,
     maps: RasterMaps,
@@ -222,50 +282,9 @@ def fly(
     """Fly episodes first_episode .. first_episode+episodes-1 under the training jammer
     schedule; every ended mission's (states, rewards) goes to ``on_missions``. Returns the
     number of decisions taken."""
-    period = scenario.training.jammer_change_every_episodes
-    envs = world.num_envs
-    recorder = TrajectoryRecorder(envs, world.num_uavs, world.step_limit,
-                                  joint_state_size(scenario, options))
-    slot_episode = np.full(envs, -1)
-    returns = np.zeros((envs, world.num_uavs))
-    next_episode = first_episode
-    end = first_episode + episodes
-
-    def start(env: int) -> None:
-        nonlocal next_episode
-        slot_episode[env] = next_episode
-        world.set_jammer([env], training_jammer(scenario, seed, next_episode // period))
-        world.reset([env], [episode_seed(seed, next_episode)])
-        returns[env] = 0.0
-        next_episode += 1
-
-    for env in range(min(envs, episodes)):
-        start(env)
-    decisions = 0
-    while (slot_episode >= 0).any():
-        running = slot_episode >= 0
-        live = world.active & running[:, None]
-        rows = np.flatnonzero(live.ravel())
-        states = observation_state(fleet_observation(world).select(rows), scenario, options,
-                                   maps(world, rows) if options.route_distance else None)
-        speed, heading = controller.act(world)
-        result = world.step(speed, heading)
-        decisions += rows.size
-        lost = result.finished & (world.status == Outcome.DISCONNECTION)
-        reward = result.reward + options.disconnection_reward * lost
-        recorder.record(states, rows, reward)
-        returns += reward
-        on_missions([recorder.take(e, u) for e, u in zip(*np.nonzero(result.finished),
-                                                          strict=True)])
-        for env in np.flatnonzero(result.env_done & running):
-            bound = straight_line_bound(scenario, world.start[env], world.destination[env])
-            on_episode(EpisodeStats(int(slot_episode[env]), world.status[env].copy(),
-                                    float(returns[env].mean()), float(bound.mean())))
-            if next_episode < end:
-                start(env)
-            else:
-                slot_episode[env] = -1
-    return decisions
+    flight = TrainingFlight(world, maps, options, seed, on_missions, on_episode)
+    fly_episodes(world, controller, range(first_episode, first_episode + episodes), flight)
+    return flight.decisions
 
 
 def td_targets(
@@ -319,33 +338,89 @@ LOG_FIELDS = ["episode", "wall_seconds", "epsilon", "mean_return", "straight_bou
               "success", "disconnection", "collision", "timeout"]
 
 
+def write_synced(path: Path, data: bytes) -> None:
+    """Write ``data`` and push it to the disk, so that no later rename can outlive it."""
+    with path.open("wb") as handle:
+        handle.write(data)
+        handle.flush()
+        os.fsync(handle.fileno())
+
+
+def sync_directory(path: Path) -> None:
+    """Push the entries created or renamed in ``path`` to the disk."""
+    descriptor = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
 class Checkpoint:
-    """Everything a resumed run needs, in ``<out>/checkpoint/``; written atomically enough
-    (progress.json last) that a crash mid-write leaves the previous checkpoint usable."""
+    """Everything a resumed run needs, under ``<out>/checkpoint/``. Each save writes a
+    complete set of files into a fresh directory and only then repoints the pointer file at
+    it (an atomic rename): a kill at any moment leaves the old or the new set whole. The next
+    save removes every directory the pointer does not name (older sets, a killed save's)."""
 
     def __init__(self, out: Path):
-        self.dir = out / "checkpoint"
+        self.root = out / "checkpoint"
+        self.pointer = self.root / "current"
+
+    @property
+    def dir(self) -> Path:
+        """The current set's directory; without a pointer, the root itself, where jamnav
+        wrote its checkpoints in place before it had pointers."""
+        if self.pointer.is_file():
+            return self.root / self.pointer.read_text(encoding="utf-8").strip()
+        return self.root
 
     def exists(self) -> bool:
         return (self.dir / "progress.json").is_file()
 
     def save(self, net, target, best, optimizer, memory: ReplayMemory, progress: dict) -> None:
-        self.dir.mkdir(parents=True, exist_ok=True)
-        for module, name in ((net, "value"), (target, "target"), (best, "best")):
-            (self.dir / f"{name}.safetensors").write_bytes(to_bytes(module.inference()))
-        torch.save(optimizer.state_dict(), self.dir / "optimizer.pt")
-        save_arrays(memory.arrays(), str(self.dir / "memory.safetensors"))
-        tmp = self.dir / "progress.json.tmp"
-        tmp.write_text(json.dumps(progress, indent=2))
-        tmp.replace(self.dir / "progress.json")
+        self.root.mkdir(parents=True, exist_ok=True)
+        fresh = Path(tempfile.mkdtemp(prefix=f"episode-{progress['episodes_done']}-",
+                                      dir=self.root))
+        optimizer_state = io.BytesIO()
+        torch.save(optimizer.state_dict(), optimizer_state)
+        files = {
+            **{f"{name}.safetensors": to_bytes(module.inference())
+               for module, name in ((net, "value"), (target, "target"), (best, "best"))},
+            "optimizer.pt": optimizer_state.getvalue(),
+            "memory.safetensors": arrays_to_bytes(memory.arrays()),
+            "progress.json": json.dumps(progress, indent=2).encode(),
+        }
+        for name, data in files.items():
+            write_synced(fresh / name, data)
+        sync_directory(fresh)
+        staged = self.root / f"{self.pointer.name}.tmp"
+        write_synced(staged, fresh.name.encode())
+        os.replace(staged, self.pointer)
+        sync_directory(self.root)
+        for entry in self.root.iterdir():
+            if entry.name in (fresh.name, self.pointer.name):
+                continue
+            if entry.is_dir():
+                shutil.rmtree(entry)
+            else:  # a killed save's staged pointer, or a file of an in-place checkpoint
+                entry.unlink()
 
     def load(self, net, target, best, optimizer, memory: ReplayMemory) -> dict:
+        current = self.dir
         for module, name in ((net, "value"), (target, "target"), (best, "best")):
-            module.assign(from_bytes((self.dir / f"{name}.safetensors").read_bytes()))
-        optimizer.load_state_dict(torch.load(self.dir / "optimizer.pt", weights_only=True))
-        arrays = load_arrays(str(self.dir / "memory.safetensors"))
+            module.assign(from_bytes((current / f"{name}.safetensors").read_bytes()))
+        optimizer.load_state_dict(torch.load(current / "optimizer.pt", weights_only=True))
+        arrays = load_arrays(str(current / "memory.safetensors"))
         memory.push(arrays["states"], arrays["values"])
-        return json.loads((self.dir / "progress.json").read_text())
+        return json.loads((current / "progress.json").read_text())
+
+
+def forget_logged_after(log_path: Path, episodes: int) -> None:
+    """Keep the header and the rows of the first ``episodes`` episodes: the rows a killed run
+    logged after its last checkpoint are flown and logged again by the resumed run."""
+    lines = log_path.read_bytes().splitlines(keepends=True)
+    staged = log_path.with_name(f"{log_path.name}.tmp")
+    staged.write_bytes(b"".join(lines[: episodes + 1]))
+    os.replace(staged, log_path)
 
 
 def train(
@@ -385,6 +460,7 @@ def train(
                                               state["td_seconds"])
         orca_info = state["orca"]
         rng = np.random.default_rng([config.seed, 1, done])
+        forget_logged_after(log_path, done)
         report({"phase": "resume", "episodes_done": done})
     else:
         started = time.perf_counter()
@@ -455,7 +531,7 @@ def train(
         while done < config.episodes:
             chunk = min(config.checkpoint_every_episodes, config.episodes - done)
             chunk_start = time.perf_counter()
-            decisions += fly(scenario, world, controller, maps, options, config.seed,
+            decisions += fly(world, controller, maps, options, config.seed,
                              next_episode, chunk, on_missions, on_episode)
             td_seconds += time.perf_counter() - chunk_start
             next_episode += chunk
@@ -529,7 +605,7 @@ def orca_pairs(
 
     world = VectorWorld(scenario, config.envs, uavs)
     # Offset seeds so ORCA flies other missions than TD training's first episodes.
-    fly(scenario, world, OrcaController(scenario), maps, options, config.seed + 1_000_003, 0,
+    fly(world, OrcaController(scenario), maps, options, config.seed + 1_000_003, 0,
         config.orca_episodes, on_missions, lambda stats: None)
     return np.concatenate(states), np.concatenate(values).astype(np.float32)
 
