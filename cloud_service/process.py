@@ -53,7 +53,7 @@ from shared.messages import (
     encode,
 )
 from shared.networks import WeightsError, load_network, sha256
-from shared.radio import JammerParams, RadioModel
+from shared.radio import RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario
 from shared.shipped import (
     DEFAULT_VALUE_NET,
@@ -75,10 +75,7 @@ _VERSION_FILE = re.compile(r"^sinr_map_v(\d+)\.safetensors$")
 def raster_map(scenario: Scenario, maps: RasterMaps, mode: MapMode, version: int,
                jammer: JammerInfo | None) -> SinrMap:
     """The true (``perfect``) or no-jammer (``outdated``) map as the lookahead's raster."""
-    params = None
-    if mode == "perfect" and jammer is not None:
-        params = JammerParams(jammer.x, jammer.y, jammer.power_w, jammer.height_m)
-    raster = maps.raster(params)
+    raster = maps.raster(JammerInfo.params(jammer) if mode == "perfect" else None)
     data = raster.levels.tobytes()
     rows, cols = raster.levels.shape
     return SinrMap(version=version, mode=mode, sha256=sha256(data), data=data,

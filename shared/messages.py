@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError,
 from shared.features import Observation
 from shared.measurements import Measurement
 from shared.outcomes import Outcome
+from shared.radio import JammerParams
 from shared.scenario import MAX_UAVS
 
 MAX_WEIGHTS_BYTES = 8 * 2**20
@@ -254,6 +255,13 @@ class JammerInfo(Message):
         except ValidationError:
             raise ValueError(f"jammer {text!r}: expected finite numbers, power and height "
                              ">= 0") from None
+
+    @staticmethod
+    def params(jammer: JammerInfo | None) -> JammerParams | None:
+        """The radio model's jammer (None: no jammer)."""
+        if jammer is None:
+            return None
+        return JammerParams(jammer.x, jammer.y, jammer.power_w, jammer.height_m)
 
 
 def jammer_numbers(text: str) -> tuple[float, float, float, float | None]:

@@ -45,7 +45,7 @@ from shared.messages import (
     encode,
     outcome_labels,
 )
-from shared.radio import JammerParams, RadioModel
+from shared.radio import RadioModel
 from shared.scenario import MAX_UAVS, Scenario, ScenarioError, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
 from world_sim.core import VectorWorld, episode_seed
@@ -213,19 +213,13 @@ def fleet_observation(world: VectorWorld, scenario: Scenario) -> tuple[Observati
                                           decision_reach(scenario, observation.radius))
 
 
-def jammer_params(jammer: JammerInfo | None) -> JammerParams | None:
-    if jammer is None:
-        return None
-    return JammerParams(jammer.x, jammer.y, jammer.power_w, jammer.height_m)
-
-
 class WorldService:
     def __init__(self, session: zenoh.Session, topics: Topics, scenario: Scenario,
                  config: WorldConfig, jammer: JammerInfo | None, log: logging.Logger):
         self.session, self.topics, self.config, self.log = session, topics, config, log
         self.scenario = scenario
         self.world = VectorWorld(scenario, 1, config.uavs, record_measurements=True)
-        self.world.set_jammer(slice(None), jammer_params(jammer))
+        self.world.set_jammer(slice(None), JammerInfo.params(jammer))
         self.dropped = bus.Dropped(log)
         self.mailbox = Mailbox(config.uavs)
         self.desk = JammerDesk(scenario, jammer, self.dropped, topics.jammer_control)
@@ -347,7 +341,7 @@ class WorldService:
 
     def _apply_jammer(self) -> None:
         for jammer in self.desk.take():
-            self.world.set_jammer(slice(None), jammer_params(jammer))
+            self.world.set_jammer(slice(None), JammerInfo.params(jammer))
             self._publish_event(JammerChanged(
                 t=time.time(), source=ROLE, jammer=jammer, episode=self.episode,
                 step=int(self.world.steps[0])))
