@@ -52,7 +52,7 @@ from shared.outcomes import FINAL_OUTCOMES
 from shared.scenario import Scenario
 from shared.shipped import value_net_name
 from shared.topics import Topics
-from world_sim.process import initial_jammer, jammer_params
+from world_sim.process import initial_jammer
 
 ROOT = Path(__file__).resolve().parent.parent
 STOP_GRACE_S = 10.0
@@ -817,7 +817,7 @@ def save_trajectory_figures(report: dict[str, Any], supervisor: Supervisor) -> l
         positions = np.array([p for p in supervisor.trajectories[episode] if p], dtype=float)
         out = Path(report["run_dir"]) / f"trajectories_{label}.png"
         save_trajectory_figure(supervisor.scenario, [(
-            f"episode {episode} ({label.replace('_', ' ')})", jammer_params(jammer), positions,
+            f"episode {episode} ({label.replace('_', ' ')})", JammerInfo.params(jammer), positions,
             np.array(supervisor.destinations[episode], dtype=float),
             supervisor.outcomes[episode])], out, dpi=110)
         written.append(str(out))

@@ -30,9 +30,11 @@ def run_json(capsys, *argv: str):
 def test_up_runs_seeded_episodes_like_eval_and_leaves_nothing_behind(supervisor, capsys,
                                                                      tmp_path, uavs, episodes):
     endpoint = free_endpoint()
+    # A step waits up to 10 s for every action: sixteen agents on a busy 2-core machine may
+    # need more than the default 2 s, and a missed deadline would be a different flight.
     process = supervisor("--uavs", str(uavs), "--episodes", str(episodes), "--lockstep",
                          "--map", "perfect", "--jammer", "0,0,1", "--seed", "5",
-                         "--no-figures", "--endpoint", endpoint,
+                         "--deadline", "10", "--no-figures", "--endpoint", endpoint,
                          "--run-dir", str(tmp_path / "run"))
     out, err = process.communicate(timeout=150 + 10 * uavs)
     assert process.returncode == 0, err[-2000:]

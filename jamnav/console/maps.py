@@ -15,7 +15,6 @@ from shared.networks import from_bytes
 from shared.policy import LevelRaster
 from shared.radio import RadioModel
 from shared.scenario import Scenario
-from world_sim.process import jammer_params
 
 DISPLAY_CELLS = 100  # along the area's longer side: 1 m cells in the shipped 100 m area
 
@@ -45,7 +44,7 @@ class CoverageMaps:
         return LevelRaster(update.levels(), grid.x0, grid.y0, grid.spacing).level_at(self.points)
 
     def true(self, jammer: JammerInfo | None) -> np.ndarray:
-        return self.radio.evaluate(self.points, jammer_params(jammer)).level
+        return self.radio.evaluate(self.points, JammerInfo.params(jammer)).level
 
     def payload(self, levels: np.ndarray, **about: Any) -> dict[str, Any]:
         """What the page draws: the grid and its levels as base64 int8, row-major from the
