@@ -26,8 +26,6 @@ import threading
 import time
 from pathlib import Path
 
-import torch
-
 from cloud_service.rollout import RasterMaps
 from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights, RetrainConfig
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
@@ -326,9 +324,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def load_training_in_background() -> None:
+    """Torch takes 1.5-3 s to import. The cloud serves its weights at once (the agents, and so
+    the first step, wait for them) and loads torch meanwhile, for its first retraining."""
+
+    def load() -> None:
+        import torch
+
+        # The SINR network is tiny: on two cores a second thread only adds hand-offs.
+        torch.set_num_threads(1)
+        import cloud_service.sinr_training  # noqa: F401
+
+    threading.Thread(target=load, name="load-torch", daemon=True).start()
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    torch.set_num_threads(1)
     log = bus.setup_logging(ROLE)
     try:
         scenario = load_scenario(args.scenario)
@@ -363,6 +374,8 @@ def main(argv: list[str] | None = None) -> int:
         except (WeightsError, ValueError) as exc:
             print(f"cloud: error: {exc}", file=sys.stderr)
             return 2
+        if cloud.mapper is not None:
+            load_training_in_background()
         cloud.run(stop)
     return 0
 

@@ -29,8 +29,6 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
-import torch
-from torch.nn import functional
 
 from cloud_service.jammer_estimation import (
     REPORT_SIGMA_DB,
@@ -42,7 +40,6 @@ from cloud_service.jammer_estimation import (
     positions_from_features,
 )
 from cloud_service.sinr_memory import SinrMemory, Uploads
-from cloud_service.torch_networks import TorchSinrMapNetwork
 from shared.measurements import (
     MeasurementBatch,
     predict_levels,
@@ -54,17 +51,8 @@ from shared.policy import MAP_SPACING_M, LevelRaster, sinr_network_raster
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 
-BATCH_SIZE = 200  # paper
-LEARNING_RATE = 5e-3  # paper
-L2 = 1e-4  # paper, as Adam's weight decay
-# The level boundaries are sharp and the marginal band (-3 to -2.21 dB) is a few metres wide;
-# at the paper's constant rate they stay blurred (about half a point of accuracy lost in our
-# runs). A cosine decay to FINAL_LR over the step budget settles them; it starts at the
-# paper's rate.
-FINAL_LR = 1e-5
 TARGET_ACCURACY = 0.97  # the accuracy bar the online map is held to on fresh measurements
 FRESH_MEASUREMENTS = 20_000  # scored after fitting: +-0.1 point on an accuracy near 98 %
-_EVAL_EVERY = 100  # steps between held-out checks (early stop on target accuracy)
 
 
 def simulated_measurements(
@@ -126,135 +114,6 @@ def labelled_batch(
 
 
 # -- training -----------------------------------------------------------------------------------
-class TrainResult(NamedTuple):
-    network: SinrMapNetwork
-    accuracy: float  # on the held-out share of the data
-    steps: int
-    seconds: float
-
-
-def train_sinr_map(
-    features: np.ndarray,
-    levels: np.ndarray,
-    level_count: int,
-    *,
-    network: SinrMapNetwork | None = None,
-    steps: int = 10_000,
-    max_seconds: float | None = None,
-    target_accuracy: float | None = None,
-    holdout: float = 0.2,
-    seed: int = 0,
-    progress: Callable[[int, float], None] | None = None,
-) -> TrainResult:
-    """Fit a SINR-mapping network to measurements ``features`` (n, F) -> ``levels`` (n,).
-
-    A share ``holdout`` of the rows is kept out of training to measure accuracy. Training
-    stops after ``steps`` mini-batches, or once ``max_seconds`` have passed, or as soon as the
-    held-out accuracy reaches ``target_accuracy`` (checked every 100 steps).
-
-    Without ``network`` a fresh one is built and its standardization fitted on the training
-    rows. With ``network`` (the current map) training continues from a copy of it, keeping
-    its standardization: refitting would change what the learned weights mean, and positions
-    are distributed alike before and after a jammer change anyway.
-
-    ``progress(step, held_out_accuracy)`` is called at every check.
-    """
-    started = wall.perf_counter()
-    features = torch.as_tensor(np.asarray(features, dtype=np.float32))
-    levels = torch.as_tensor(np.asarray(levels, dtype=np.int64))
-    n = len(levels)
-    if n < 2:
-        raise ValueError("training needs at least two measurements")
-    generator = torch.Generator().manual_seed(seed)
-    order = torch.randperm(n, generator=generator)
-    held = min(n - 1, max(1, round(holdout * n)))
-    test_x, test_y = features[order[:held]], levels[order[:held]]
-    train_x, train_y = features[order[held:]], levels[order[held:]]
-
-    if network is None:
-        with torch.random.fork_rng():
-            torch.manual_seed(seed)
-            module = TorchSinrMapNetwork(features.shape[1], level_count)
-        module.standardize.fit(train_x)
-    else:
-        module = TorchSinrMapNetwork(network.input_size, network.levels)
-        module.assign(network)
-    trained = module.inference()  # reads the module's memory: it follows every step
-    optimizer = torch.optim.Adam(module.parameters(), lr=LEARNING_RATE, weight_decay=L2)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps, eta_min=FINAL_LR)
-
-    def held_out_accuracy() -> float:
-        return accuracy_of(trained, test_x.numpy(), test_y.numpy())
-
-    accuracy, done = float("nan"), 0
-    batches = torch.randperm(len(train_y), generator=generator)
-    cursor = 0
-    while done < steps:
-        if cursor + BATCH_SIZE > len(batches):  # a new epoch: reshuffle
-            batches = torch.randperm(len(train_y), generator=generator)
-            cursor = 0
-        rows = batches[cursor : cursor + BATCH_SIZE]
-        cursor += BATCH_SIZE
-        loss = functional.cross_entropy(module(train_x[rows]), train_y[rows])
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        schedule.step()
-        done += 1
-        if done % _EVAL_EVERY == 0 or done == steps:
-            accuracy = held_out_accuracy()
-            if progress is not None:
-                progress(done, accuracy)
-            if target_accuracy is not None and accuracy >= target_accuracy:
-                break
-            if max_seconds is not None and wall.perf_counter() - started >= max_seconds:
-                break
-    return TrainResult(trained, accuracy, done, wall.perf_counter() - started)
-
-
-def fit_sinr_map(
-    scenario: Scenario,
-    jammer: JammerParams | None,
-    samples: int,
-    steps: int,
-    seed: int,
-    progress: Callable[[int, float], None] | None = None,
-) -> tuple[SinrMapNetwork, dict[str, Any]]:
-    """A SINR map for one jammer (or none) from ``samples`` simulated measurements, scored on
-    fresh measurements drawn apart from the training ones: against their reported levels, and
-    against the true levels at the same positions. Returns the network and the figures for
-    its card."""
-    started = wall.perf_counter()
-    train_rng, test_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
-    data = simulated_measurements(scenario, jammer, samples, train_rng)
-    result = train_sinr_map(data.features, data.levels, scenario.channel.level_count,
-                            steps=steps, seed=seed, progress=progress)
-    radio = RadioModel(scenario)
-    fresh_xy = uniform_positions(scenario, FRESH_MEASUREMENTS, test_rng)
-    fresh = measurements_at(scenario, radio, jammer, fresh_xy, test_rng)
-    figures = {
-        "scenario": scenario.name,
-        "jammer": None if jammer is None else dict(jammer._asdict()),
-        "seed": seed,
-        "samples": samples,
-        "steps": result.steps,
-        "accuracy": accuracy_of(result.network, fresh.features, fresh.levels),
-        # Reports carry the receivers' noise, which caps any map's score on them; this is the
-        # map's score on the world itself.
-        "accuracy_on_true_levels": accuracy_of(result.network, fresh.features,
-                                               radio.evaluate(fresh_xy, jammer).level),
-        "fresh_measurements": FRESH_MEASUREMENTS,
-        "held_out_accuracy": result.accuracy,
-        "wall_seconds": round(wall.perf_counter() - started, 2),
-    }
-    return result.network, figures
-
-
-def accuracy_of(network: SinrMapNetwork, features, levels) -> float:
-    predicted = predict_levels(network, features)
-    return float((predicted == np.asarray(levels)).mean())
-
-
 # -- change detection ---------------------------------------------------------------------------
 class DetectorCheck(NamedTuple):
     t: float  # time of the last measurement fed
@@ -576,6 +435,10 @@ class OnlineSinrMapper:
             features = np.concatenate([features, prior_features])
             levels = np.concatenate([levels, prior_levels])
             start_from = self._base
+        # Imported here, on the first retraining: torch takes seconds to load, and the cloud
+        # serves weights from its start (the cloud process loads it meanwhile).
+        from cloud_service.sinr_training import train_sinr_map
+
         result = train_sinr_map(
             features, levels, self.level_count, network=start_from, steps=config.steps,
             max_seconds=config.max_seconds, target_accuracy=config.target_accuracy,

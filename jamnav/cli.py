@@ -459,7 +459,7 @@ def _one_torch_thread() -> None:
 
 
 def cmd_fit_sinr(args: argparse.Namespace) -> int:
-    from cloud_service.sinr_mapping import fit_sinr_map
+    from cloud_service.sinr_training import fit_sinr_map
     from cloud_service.value_training import git_commit
     from jamnav.progress import ProgressBar
     from shared.networks import save_network

@@ -297,3 +297,8 @@ def predict_probabilities(network: SinrMapNetwork, features: np.ndarray) -> np.n
 def predict_levels(network: SinrMapNetwork, features: np.ndarray) -> np.ndarray:
     """Predicted level (the most probable) for features of shape (..., F)."""
     return predict_probabilities(network, features).argmax(-1).astype(np.int64)
+
+
+def accuracy_of(network: SinrMapNetwork, features, levels) -> float:
+    predicted = predict_levels(network, features)
+    return float((predicted == np.asarray(levels)).mean())

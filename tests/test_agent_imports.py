@@ -1,5 +1,6 @@
 """A UAV's agent flies without torch: neither importing it nor what it does to fly (taking
-both networks from the cloud's messages, sampling the map, deciding) loads torch."""
+both networks from the cloud's messages, sampling the map, deciding) loads torch. Nor do the
+other processes, but for a cloud that retrains."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -42,3 +45,21 @@ def test_an_agent_imports_and_flies_without_torch(scenario):
     flown = json.loads(done.stdout.splitlines()[-1])
     assert flown["torch"] == []
     assert 0.0 <= flown["speed"] <= scenario.uav.max_speed_mps
+
+
+LOADED = """
+import json, sys, importlib
+importlib.import_module(sys.argv[1])
+print(json.dumps(sorted(name for name in sys.modules if name.split(".")[0] == "torch")))
+"""
+
+
+@pytest.mark.parametrize("module", ["world_sim.process", "jamnav.supervisor",
+                                    "jamnav.console.server", "cloud_service.process"])
+def test_no_process_but_a_retraining_cloud_loads_torch(module):
+    """The world, the supervisor and the console never need torch; the cloud serves weights
+    without it and loads it in the background for its first retraining."""
+    done = subprocess.run([sys.executable, "-c", LOADED, module], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout.splitlines()[-1]) == []

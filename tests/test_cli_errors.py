@@ -19,7 +19,7 @@ SINR_MAP = str(SINR_MAP_NO_JAMMER)
 HEAVY = [
     ("cloud_service.value_training", "train"),
     ("cloud_service.evaluation", "run_episodes"),  # eval, table and figures fly with it
-    ("cloud_service.sinr_mapping", "fit_sinr_map"),
+    ("cloud_service.sinr_training", "fit_sinr_map"),
     ("cloud_service.online_map_sim", "simulate_online_map"),
     ("shared.plots", "save_coverage_map"),
     ("shared.plots", "plot_reward_curve"),

@@ -16,16 +16,16 @@ from cloud_service.sinr_mapping import (
     OnlineSinrMapper,
     PublishedWeights,
     RetrainConfig,
-    accuracy_of,
-    fit_sinr_map,
     simulated_measurements,
 )
 from cloud_service.sinr_memory import SinrMemory
+from cloud_service.sinr_training import fit_sinr_map
 from jamnav.cli import main
 from shared.measurements import (
     Measurement,
     MeasurementBatch,
     MeasurementSpec,
+    accuracy_of,
     gbs_features,
     predict_levels,
     scenario_features,
