@@ -5,10 +5,16 @@ last observed velocity, the CADRL "filtered velocity"), the SINR level there fro
 and the reward; it picks argmax R + gamma * V(next joint state). All UAVs and all actions go
 through the value network in one forward pass. Training, evaluation and the agent processes
 call this same code.
+
+With policy.lookahead_depth > 1 a UAV at risk of disconnection searches deeper: each first
+action scored R1 + gamma * max_a2 [R2 + gamma * V(s2)] (and so on), which sees a jammed zone
+that no move within the turn limit leaves in time before the UAV turns into it.
 """
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 from collections.abc import Callable
 from typing import NamedTuple, Protocol
 
@@ -40,9 +46,15 @@ class RadioMap(Protocol):
         """Distance along the map's connected route from ``xy`` (N, ..., 2) to each row's
         destination (N, 2); read only by the extended method."""
 
+    def for_rows(self, rows: np.ndarray) -> RadioMap:
+        """The map as read by the UAVs of ``rows`` (indices into the UAV rows), one row each:
+        how a deeper lookahead queries the UAVs it searches, each several times over."""
+
 
 MAP_SPACING_M = 0.5  # raster spacing of the lookahead's maps: well below a UAV's radius
-RASTER_BLOCK_ROWS = 64  # grid rows whose SINR-map features are computed at once
+# Grid rows whose SINR-map features are computed at once: an agent's memory peaks 6 MiB above
+# its floor while it samples the icc2021 map (22 MiB with 64 rows, and no faster).
+RASTER_BLOCK_ROWS = 16
 
 
 class TrueMap:
@@ -54,6 +66,9 @@ class TrueMap:
 
     def level_at(self, xy: np.ndarray) -> np.ndarray:
         return self.radio.evaluate(xy, self.jammer).level
+
+    def for_rows(self, rows: np.ndarray) -> TrueMap:
+        return self  # one map for every row
 
 
 class LevelRaster:
@@ -88,6 +103,9 @@ class LevelRaster:
 
     def level_at(self, xy: np.ndarray) -> np.ndarray:
         return self.levels[self.indices(xy)]
+
+    def for_rows(self, rows: np.ndarray) -> LevelRaster:
+        return self  # one map for every row
 
     def routes(self, scenario: Scenario) -> RouteGrid:
         """The routing grid of this map (built once): levels read every route_cell_m."""
@@ -127,6 +145,11 @@ class RasterMap:
         row, col = self.first.indices(xy)
         which = self.which.reshape(self.which.shape + (1,) * (xy.ndim - 2))
         return self.stack[which, row, col]
+
+    def for_rows(self, rows: np.ndarray) -> RasterMap:
+        subset = copy.copy(self)  # the rasters and their route caches are shared, not copied
+        subset.which = self.which[rows]
+        return subset
 
     def route_distance(self, xy: np.ndarray, destination: np.ndarray) -> np.ndarray:
         """Route distance (N, ...) from ``xy`` (N, ..., 2) to each row's destination."""
@@ -171,10 +194,33 @@ class Decision(NamedTuple):
     value: np.ndarray  # (N,) R + gamma V of the chosen action (NaN when explored)
 
 
+class Expansion(NamedTuple):
+    """Every candidate action of N UAVs, one step ahead: arrays (N, A, ...)."""
+
+    speed: np.ndarray
+    heading: np.ndarray
+    velocity: np.ndarray
+    position: np.ndarray  # where each action ends (at the destination if it arrives)
+    level: np.ndarray
+    below_steps: np.ndarray
+    reward: np.ndarray  # R of the step, the disconnection reward of a lost mission included
+    terminal: np.ndarray  # arrival, collision, or (with disconnection memory) a lost mission
+    states: np.ndarray  # (N, A, F) joint states after the step
+    others_position: np.ndarray  # (N, K, 2) the others after the step
+
+    def select(self, rows: np.ndarray) -> Expansion:
+        return Expansion(*(field[rows] for field in self))
+
+
+DEEP_SEARCH_LEAVES = 1 << 16  # leaves per forward pass of the deep search: bounds its memory
+
+
 class LookaheadPolicy:
-    def __init__(self, scenario: Scenario, value_net: ValueNetwork, shield: bool = True):
+    def __init__(self, scenario: Scenario, value_net: ValueNetwork, shield: bool = True,
+                 lookahead_depth: int | None = None):
         """``shield=False`` flies without the method's safe cells even if it has them: how
-        training flies, so the value network learns what a collision costs."""
+        training flies, so the value network learns what a collision costs.
+        ``lookahead_depth`` overrides the scenario's policy.lookahead_depth."""
         self.scenario = scenario
         self.actions = ActionSet(scenario)
         self.rewards = RewardModel(scenario)
@@ -190,6 +236,11 @@ class LookaheadPolicy:
                                f"scenario gives {wanted}")
         self.disconnection_limit = scenario.timing.disconnection_limit_steps
         self.value_net = value_net
+        self.depth = scenario.policy.lookahead_depth if lookahead_depth is None else lookahead_depth
+        if self.depth < 1:
+            raise ValueError(f"lookahead_depth must be at least 1, not {self.depth}")
+        # Levels under this are weak: below T_s, and the marginal band above it if there is one.
+        self.weak_levels = min(2, scenario.channel.level_count - 1)
 
     def values(self, states: np.ndarray) -> np.ndarray:
         return self.value_net(states).astype(np.float64)
@@ -206,16 +257,9 @@ class LookaheadPolicy:
                               axis=-1) - observation.radius[:, None] - observation.others_radius)
         return np.clip(now - CLOSING_TOLERANCE_M, 0.0, margin)
 
-    def decide(
-        self,
-        observation: Observation,
-        radio_map: RadioMap,
-        epsilon: float = 0.0,
-        rng: np.random.Generator | None = None,
-    ) -> Decision:
-        n = len(observation)
-        seen = observation
-        observation = observation.nearest_neighbours(self.observed_uavs)
+    def expand(self, observation: Observation, radio_map: RadioMap) -> Expansion:
+        """Each candidate action of each UAV of ``observation`` (its J_n nearest others
+        only) one step ahead, others propagated at their velocity."""
         speeds, headings = self.actions.candidates(observation.heading)  # (N, A)
         velocity = velocity_of(speeds, headings)  # (N, A, 2)
         position = observation.position[:, None, :]
@@ -256,7 +300,6 @@ class LookaheadPolicy:
             radio_map.route_distance(next_position, observation.destination)
             if self.options.route_distance else None,
         )
-        next_value = self.values(states.reshape(-1, states.shape[-1])).reshape(n, -1)
         # Arrival and collision end the mission: nothing follows them. A UAV that counts its
         # time below T_s also knows which steps would end it by disconnection.
         terminal = arrived | (gap <= 0)
@@ -264,15 +307,91 @@ class LookaheadPolicy:
             lost = ~arrived & (gap > 0) & (below > self.disconnection_limit)
             terminal |= lost
             reward = reward + self.options.disconnection_reward * lost
-        score = reward + self.gamma * np.where(terminal, 0.0, next_value)
+        return Expansion(speeds, headings, velocity, next_position, level, below, reward,
+                         terminal, states, others_next)
+
+    def scores(self, expansion: Expansion, follow: np.ndarray) -> np.ndarray:
+        """R + gamma * ``follow`` (the value of what comes after), nothing after a terminal."""
+        return expansion.reward + self.gamma * np.where(expansion.terminal, 0.0, follow)
+
+    def leaf_scores(self, expansion: Expansion) -> np.ndarray:
+        """R + gamma V(next state) of every action (N, A): one forward pass for all."""
+        states = expansion.states
+        follow = self.values(states.reshape(-1, states.shape[-1])).reshape(states.shape[:2])
+        return self.scores(expansion, follow)
+
+    def after(self, observation: Observation, expansion: Expansion, uav: np.ndarray,
+              action: np.ndarray) -> Observation:
+        """Observations one step on, one per pair of ``uav`` and ``action`` taken: the UAV where
+        the action leaves it, the others where their velocity takes them."""
+        moved = {name: getattr(expansion, name)[uav, action]
+                 for name in ("position", "velocity", "heading", "level", "below_steps")}
+        return dataclasses.replace(observation.select(uav), **moved,
+                                   step=observation.step[uav] + 1,
+                                   others_position=expansion.others_position[uav])
+
+    def deep_scores(self, observation: Observation, expansion: Expansion,
+                    radio_map: RadioMap, depth: int, searched: np.ndarray) -> np.ndarray:
+        """Score (N, A) of each action followed by the best of ``depth - 1`` more steps,
+        R1 + gamma * max_a2 [R2 + gamma * ... V], for the actions ``searched`` marks (N, A);
+        the others, and terminal ones, score R1 alone. All leaves in one forward pass."""
+        if depth == 1:
+            return self.leaf_scores(expansion)
+        uav, action = np.nonzero(searched & ~expansion.terminal)
+        onward = self.after(observation, expansion, uav, action)
+        onward_map = radio_map.for_rows(uav)
+        deeper = self.expand(onward, onward_map)
+        best_next = np.zeros(expansion.reward.shape)
+        best_next[uav, action] = self.deep_scores(
+            onward, deeper, onward_map, depth - 1, np.ones_like(deeper.terminal)).max(axis=1)
+        return self.scores(expansion, best_next)
+
+    def at_risk(self, observation: Observation, expansion: Expansion,
+                best: np.ndarray) -> np.ndarray:
+        """UAVs (N,) whose decision a deeper search may change for the better: those on a weak
+        level now or whose best one-step move ends on one. A jammed zone can hold a trap that
+        no move within the turn limit leaves in time, which one step does not show."""
+        landing = expansion.level[np.arange(len(observation)), best]
+        return (observation.level < self.weak_levels) | (landing < self.weak_levels)
+
+    def deepened(self, observation: Observation, expansion: Expansion, radio_map: RadioMap,
+                 score: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+        """``score`` (N, A) with the actions of the UAVs at risk scored ``depth`` steps deep,
+        the safe-cell mask kept on the first step; a group of UAVs at a time, each group's
+        leaves in one forward pass."""
+        risky = np.flatnonzero(self.at_risk(observation, expansion, score.argmax(axis=1)))
+        group = max(1, DEEP_SEARCH_LEAVES // len(self.actions) ** self.depth)
+        score = score.copy()
+        for start in range(0, risky.size, group):
+            rows = risky[start : start + group]
+            deep = self.deep_scores(observation.select(rows), expansion.select(rows),
+                                    radio_map.for_rows(rows), self.depth, allowed[rows])
+            score[rows] = np.where(allowed[rows], deep, -np.inf)
+        return score
+
+    def decide(
+        self,
+        observation: Observation,
+        radio_map: RadioMap,
+        epsilon: float = 0.0,
+        rng: np.random.Generator | None = None,
+    ) -> Decision:
+        n = len(observation)
+        seen = observation
+        observation = observation.nearest_neighbours(self.observed_uavs)
+        expansion = self.expand(observation, radio_map)
+        score = self.leaf_scores(expansion)
         rows = np.arange(n)
         allowed = np.ones_like(score, dtype=bool)
         if self.safe_cells:
             # The whole step's path counts, arrival included: the world checks it so. Every
             # UAV in sight bounds the cell, not only the J_n the value network reads.
-            allowed = inside_safe_cells(seen.position, position + velocity * self.dt,
-                                        seen.radius, seen.others_position, seen.others_present)
+            end = seen.position[:, None] + expansion.velocity * self.dt
+            allowed = inside_safe_cells(seen.position, end, seen.radius, seen.others_position,
+                                        seen.others_present)
             score = np.where(allowed, score, -np.inf)
+        if self.depth > 1:
+            score = self.deepened(observation, expansion, radio_map, score, allowed)
         chosen = score.argmax(axis=1)
         value = score[rows, chosen]
         if epsilon > 0:
@@ -283,4 +402,5 @@ class LookaheadPolicy:
             tried = np.where(allowed[rows, tried], tried, 0)
             chosen = np.where(explore, tried, chosen)
             value = np.where(explore, np.nan, value)
-        return Decision(speeds[rows, chosen], headings[rows, chosen], chosen, value)
+        return Decision(expansion.speed[rows, chosen], expansion.heading[rows, chosen], chosen,
+                        value)

@@ -169,6 +169,9 @@ class Policy(_Strict):
     orca_time_horizon_s: Positive
     route_cell_m: Positive
     route_uncovered_cost: Annotated[float, Field(ge=1, allow_inf_nan=False)]
+    # Steps the lookahead searches for a UAV at risk of disconnection (shared/policy.py): each
+    # step multiplies its cost by the action count, so more than 3 is out of reach.
+    lookahead_depth: int = Field(default=1, ge=1, le=3)
 
 
 class Training(_Strict):
