@@ -22,6 +22,7 @@ import io
 import json
 import math
 import os
+import platform
 import shutil
 import subprocess
 import tempfile
@@ -29,6 +30,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -334,6 +336,30 @@ def git_commit() -> str:
         return "unknown"
 
 
+# The vector instructions that decide how float32 sums are grouped, and so the last bits of
+# every gradient step: two CPUs that differ in them train to different weights.
+ARITHMETIC_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_vnni", "amx_tile")
+
+
+def cpu_description() -> dict[str, Any]:
+    """The training machine as far as the weights depend on it: CPU model, the vector
+    instructions it offers (``ARITHMETIC_FLAGS``), the kernel, and torch's own choice."""
+    model, flags = platform.processor() or platform.machine(), set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8").splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name":
+                model = value.strip()
+            elif key.strip() == "flags":
+                flags = set(value.split())
+                break
+    except OSError:  # not Linux: the model name alone
+        pass
+    return {"model": model, "flags": [flag for flag in ARITHMETIC_FLAGS if flag in flags],
+            "kernel": platform.release(), "torch_cpu_capability":
+                torch.backends.cpu.get_cpu_capability()}
+
+
 LOG_FIELDS = ["episode", "wall_seconds", "epsilon", "mean_return", "straight_bound",
               "success", "disconnection", "collision", "timeout"]
 
@@ -572,6 +598,7 @@ def train(
         "git_commit": commit,
         "torch": torch.__version__,
         "device": config.device,
+        "cpu": cpu_description(),
         "config": asdict(config),
         "validation": validation,
         "selection": {

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import platform
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ import pytest
 from cloud_service import value_training
 from cloud_service.torch_networks import TorchValueNetwork
 from cloud_service.value_training import (
+    ARITHMETIC_FLAGS,
     ReplayMemory,
     TrainConfig,
     discounted_returns,
@@ -33,6 +35,9 @@ def test_outputs_card_and_resume(scenario, tmp_path):
     card = train(scenario, tiny(20), tmp_path, command="jamnav train (test)")
     assert CARD_KEYS <= card.keys()
     assert {"success_rate", "disconnection_rate", "collision_rate"} <= card["validation"].keys()
+    # Where the weights were made, as far as they depend on it (Linux names its CPU's flags).
+    assert card["cpu"]["model"] and card["cpu"]["kernel"] == platform.release()
+    assert set(card["cpu"]["flags"]) <= set(ARITHMETIC_FLAGS)
     for name in ("value_net.safetensors", "value_net.json", "train_log.csv", "reward_curve.png"):
         assert (tmp_path / name).is_file(), name
     network, saved = load_network(tmp_path / "value_net.safetensors")
