@@ -25,7 +25,9 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
+from cloud_service.jammer_estimation import JammerEstimate as EstimatedJammer
 from cloud_service.rollout import RasterMaps
 from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights, RetrainConfig
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
@@ -79,6 +81,25 @@ def raster_map(scenario: Scenario, maps: RasterMaps, mode: MapMode, version: int
     return SinrMap(version=version, mode=mode, sha256=sha256(data), data=data,
                    grid=RasterGrid(x0=raster.x0, y0=raster.y0, spacing=raster.spacing,
                                    rows=rows, cols=cols))
+
+
+def map_card(weights: PublishedWeights, published: float) -> dict[str, Any]:
+    """The card saved beside a published SINR map: what a restarted cloud carries on with."""
+    return {"version": weights.version, "accuracy": weights.accuracy, "sha256": weights.sha256,
+            "published": published,
+            "estimate": None if weights.estimate is None else weights.estimate._asdict()}
+
+
+def estimate_of(card: dict[str, Any]) -> EstimatedJammer | None:
+    """The jammer estimate a saved map's card holds (None: the map had none, or a card this
+    cloud cannot read it from, which only costs the detector the estimate's model)."""
+    fields = card.get("estimate")
+    if not isinstance(fields, dict):
+        return None
+    try:
+        return EstimatedJammer(**fields)
+    except TypeError:
+        return None
 
 
 def latest_saved(directory: Path) -> Path | None:
@@ -145,13 +166,14 @@ class CloudService:
         if not isinstance(accuracy, int | float):
             raise WeightsError(f"{path}: its card states no accuracy")
         version = int(card.get("version", 0))
+        estimate = estimate_of(card)
         # The survey map stays the base every estimate corrects, whichever map is in service.
         base, _ = load_network(sinr_net, {"kind": "sinr_map", "input_size": spec.feature_size,
                                           "levels": spec.level_count})
         self.mapper = OnlineSinrMapper(self.scenario, self.memory, network, float(accuracy),
                                        base_network=base,
                                        publish=self._on_retrained, retrain=retrain,
-                                       version=version)
+                                       version=version, estimate=estimate)
         data = path.read_bytes()
         return SinrMap(version=version, mode="online", sha256=sha256(data), data=data,
                        accuracy=float(accuracy))
@@ -261,9 +283,8 @@ class CloudService:
         """Runs on the mapper's retraining thread."""
         path = self.maps_dir / f"sinr_map_v{weights.version}.safetensors"
         path.write_bytes(weights.data)
-        path.with_suffix(".json").write_text(json.dumps({
-            "version": weights.version, "accuracy": weights.accuracy, "sha256": weights.sha256,
-            "published": time.time()}, indent=2) + "\n", encoding="utf-8")
+        path.with_suffix(".json").write_text(json.dumps(
+            map_card(weights, time.time()), indent=2) + "\n", encoding="utf-8")
         update = SinrMap(version=weights.version, mode="online", sha256=weights.sha256,
                          data=weights.data, accuracy=weights.accuracy)
         with self._lock:

@@ -257,6 +257,8 @@ class OnlineSinrMapper:
     each new map calls ``publish(PublishedWeights)``.
 
     ``clock`` stamps the events: time.time in service, the simulated time in simulations.
+    ``estimate``: the jammer estimate behind ``network``, for a cloud that restarts on the map
+    it last published (the detector weighs reports by it, see ``_report_probability``).
     """
 
     def __init__(
@@ -274,6 +276,7 @@ class OnlineSinrMapper:
         background: bool = True,
         version: int = 0,
         seed: int = 0,
+        estimate: JammerEstimate | None = None,
     ):
         self.scenario = scenario
         self.memory = memory
@@ -285,7 +288,7 @@ class OnlineSinrMapper:
         self.clock = clock
         self.background = background
         self.events: list[dict[str, Any]] = []
-        self.estimate: JammerEstimate | None = None
+        self.estimate = estimate
         self._estimate_sigma_db = 0.0  # the shadowing fitted beside ``estimate``
         self._network = network
         self._base = base_network or network
@@ -297,6 +300,8 @@ class OnlineSinrMapper:
         self._change: _Change | None = None  # set while a change is being handled
         self._busy = False
         self._worker: threading.Thread | None = None
+        if estimate is not None:
+            self._estimate_sigma_db = self._shadowing_sigma(self._prior_positions())
 
     @property
     def version(self) -> int:
@@ -425,11 +430,9 @@ class OnlineSinrMapper:
         features, levels = data.features, data.levels
         start_from, sigma_db = self._network, 0.0
         if estimate is not None:
-            prior_xy = uniform_positions(self.scenario, config.prior_points,
-                                         np.random.default_rng(self._seed + self._version))
+            prior_xy = self._prior_positions()
             prior_features = scenario_features(self.scenario, prior_xy)
-            sigma_db = fit_shadowing_sigma(RadioModel(self.scenario, shadowed=False), prior_xy,
-                                           self._base_levels(prior_xy))
+            sigma_db = self._shadowing_sigma(prior_xy)
             prior_levels = corrected_levels(self.scenario, self._base_levels, estimate,
                                             prior_xy, shadowing_sigma_db=sigma_db)
             features = np.concatenate([features, prior_features])
@@ -471,6 +474,17 @@ class OnlineSinrMapper:
     def _settle_locked(self) -> None:
         self._change = None
         self.detector.reset()
+
+    def _prior_positions(self) -> np.ndarray:
+        """Where the estimate-corrected map labels the area for the DNN (a fresh draw for
+        each map version)."""
+        return uniform_positions(self.scenario, self.retrain.prior_points,
+                                 np.random.default_rng(self._seed + self._version))
+
+    def _shadowing_sigma(self, xy: np.ndarray) -> float:
+        """How far the survey map says the world departs from the ideal model, at ``xy``."""
+        return fit_shadowing_sigma(RadioModel(self.scenario, shadowed=False), xy,
+                                   self._base_levels(xy))
 
     def _base_levels(self, xy: np.ndarray) -> np.ndarray:
         return predict_levels(self._base, scenario_features(self.scenario, xy))

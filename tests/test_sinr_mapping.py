@@ -10,7 +10,9 @@ import torch
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from cloud_service.jammer_estimation import JammerEstimate as EstimatedJammer
 from cloud_service.online_map_sim import Fleet, jammer_params
+from cloud_service.process import estimate_of, map_card
 from cloud_service.sinr_mapping import (
     TARGET_ACCURACY,
     OnlineSinrMapper,
@@ -359,3 +361,33 @@ def test_online_map_writes_figure_and_timeline(capsys, tmp_path, small_map):
     assert len(timeline["t"]) == len(timeline["accuracy"]) == 90
     assert [c["t"] for c in timeline["jammer_changes"]] == [0, 10, 30, 50, 70]
     assert "wrote" in err
+
+
+def test_a_restarted_mapper_weighs_reports_by_the_estimate_its_map_was_made_with(
+        mapping_scenario, no_jammer_map):
+    """A cloud restarts on the map it last published and the estimate saved beside it: reports
+    the estimate explains raise no change, though the map alone (here the survey's, which
+    knows no jammer) contradicts them; without the estimate they do raise one."""
+    network, accuracy = no_jammer_map
+    setting = TABLE_I_JAMMERS[0]
+    truth = EstimatedJammer(present=True, x=setting.x, y=setting.y, power_w=setting.power_w,
+                            effective_power_dbm=10.0, sd_x_m=2.0, sd_y_m=2.0, sd_power_db=0.5,
+                            measurements=2000, log_likelihood_ratio=50.0)
+    detections = {}
+    for name, estimate in (("with", truth), ("without", None)):
+        mapper, now = _online(mapping_scenario, network, accuracy, background=False,
+                              estimate=estimate, version=7)
+        _fly(mapper, Fleet(mapping_scenario, 20, np.random.default_rng(4)), mapping_scenario,
+             setting, 60, 0, now)
+        detections[name] = _types(mapper).count("change_detected")
+    assert detections == {"with": 0, "without": 1}
+
+
+def test_a_published_maps_card_keeps_its_estimate_for_a_restart():
+    estimate = EstimatedJammer(True, 1.5, -2.0, 0.8, 9.0, 2.5, 3.0, 0.7, 1234, 40.0, 0.3)
+    weights = PublishedWeights(b"", "0" * 64, 3, 0.97, estimate)
+    card = json.loads(json.dumps(map_card(weights, 1.0)))
+    assert estimate_of(card) == estimate
+    assert estimate_of(json.loads(json.dumps(map_card(weights._replace(estimate=None), 1.0)))
+                       ) is None
+    assert estimate_of({"estimate": {"present": True}}) is None  # unreadable: none, no error
