@@ -61,6 +61,9 @@ def config(mode: Literal["router", "client"], endpoint: str,
         "mode": mode,
         "scouting/multicast/enabled": False,
         "scouting/delay": 0,
+        # Zenoh maps a 16 MiB shared-memory pool into every process and touches it whole; the
+        # system's messages are small (weights: tens of kB), and loopback TCP carries them.
+        "transport/shared_memory/enabled": False,
     }
     if mode == "router":
         settings["listen/endpoints"] = [endpoint, *listeners]
