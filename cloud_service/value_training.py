@@ -504,7 +504,8 @@ def train(
         with log_path.open("w", newline="") as handle:
             csv.writer(handle).writerow(LOG_FIELDS)
 
-    policy = LookaheadPolicy(scenario, net.inference(), shield=False)
+    # One step: the TD targets are one-step, and a deeper search would cost training 5-10x.
+    policy = LookaheadPolicy(scenario, net.inference(), shield=False, lookahead_depth=1)
     controller = LookaheadController(policy, maps, rng=rng)
     world = VectorWorld(scenario, config.envs, uavs)
     gamma = scenario.policy.gamma
