@@ -477,14 +477,11 @@ def corrected_levels(
     shadowing_sigma_db: float | None = None,
 ) -> np.ndarray:
     """The no-jammer map corrected with an estimated jammer, at points ``xy`` (..., 2): the
-    most probable level of ``corrected_level_probabilities``. With ``present`` false the
-    no-jammer map stands."""
-    xy = np.asarray(xy, dtype=np.float64)
-    if not estimate.present:
-        return np.asarray(no_jammer_levels_at(xy.reshape(-1, 2))).reshape(xy.shape[:-1])
+    most probable level of ``corrected_level_probabilities`` (with ``present`` false, the
+    no-jammer map's)."""
     probabilities = corrected_level_probabilities(
         scenario, no_jammer_levels_at, estimate, xy, shadowing_sigma_db=shadowing_sigma_db)
-    return probabilities.argmax(axis=-1).astype(np.int64)
+    return probabilities.argmax(axis=-1)
 
 
 def corrected_level_probabilities(
