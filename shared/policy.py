@@ -1,8 +1,9 @@
 """One-step lookahead (Algorithm 1, lines 11-20): the policy every UAV runs.
 
 For every permissible action the UAV predicts its next state (other UAVs propagated at their
-last observed velocity, the CADRL "filtered velocity"), the SINR level there from a radio map,
-and the reward; it picks argmax R + gamma * V(next joint state). All UAVs and all actions go
+last observed velocity, the CADRL "filtered velocity", or with policy.others_model "reciprocal"
+each taking half of the avoidance as in ORCA), the SINR level there from a radio map, and the
+reward; it picks argmax R + gamma * V(next joint state). All UAVs and all actions go
 through the value network in one forward pass. Training, evaluation and the agent processes
 call this same code.
 
@@ -30,6 +31,7 @@ from shared.features import (
 from shared.kinematics import ActionSet, closest_approach, velocity_of
 from shared.measurements import predict_levels, scenario_features
 from shared.networks import SinrMapNetwork, ValueNetwork, WeightsError
+from shared.orca import orca_velocities
 from shared.radio import JammerParams, RadioModel
 from shared.rewards import RewardModel, smallest_gaps
 from shared.routes import RouteGrid
@@ -187,6 +189,41 @@ def inside_safe_cells(
     return still | ~leaves.any(axis=-1)
 
 
+def reciprocal_velocities(observation: Observation, time_horizon: float,
+                          time_step: float) -> np.ndarray:
+    """Each other's next velocity (N, K, 2) if it avoids the observing UAV as a reciprocal ORCA
+    agent keen to keep its observed velocity: unchanged unless the two are on collision course
+    within ``time_horizon``, else its half of the avoidance, the other half left to the
+    observer. A UAV that reasons so about its neighbour, and the neighbour about it, predict
+    mirrored halves to the same passing side (ORCA breaks a head-on tie to the right leg for
+    both), where constant velocity has each expect the other to hold its course. The others'
+    top speed is not observed; a fleet shares one, so each UAV lends them its own."""
+    others_velocity = observation.others_velocity
+    # ORCA changes the velocity of a pair on collision course only: solving for those alone
+    # keeps the cost near nothing when no UAV is close to another.
+    colliding = observation.others_present & (closest_approach(
+        observation.others_position - observation.position[:, None],
+        others_velocity - observation.velocity[:, None],
+        time_horizon,
+    ) < observation.radius[:, None] + observation.others_radius)
+    uav, other = np.nonzero(colliding)
+    if uav.size == 0:
+        return others_velocity
+
+    def pairs(own: np.ndarray, others: np.ndarray) -> np.ndarray:
+        """Two-agent worlds (P, 2, ...): the observing UAV, then the other it sees."""
+        return np.stack([own[uav], others[uav, other]], axis=1)
+
+    velocity = pairs(observation.velocity, others_velocity)
+    avoiding = orca_velocities(
+        pairs(observation.position, observation.others_position), velocity,
+        pairs(observation.radius, observation.others_radius), velocity,
+        observation.max_speed[uav, None], True, time_horizon, time_step)
+    predicted = others_velocity.copy()
+    predicted[uav, other] = avoiding[:, 1]
+    return predicted
+
+
 class Decision(NamedTuple):
     speed: np.ndarray  # (N,)
     heading: np.ndarray  # (N,)
@@ -207,6 +244,7 @@ class Expansion(NamedTuple):
     terminal: np.ndarray  # arrival, collision, or (with disconnection memory) a lost mission
     states: np.ndarray  # (N, A, F) joint states after the step
     others_position: np.ndarray  # (N, K, 2) the others after the step
+    others_velocity: np.ndarray  # (N, K, 2) and the velocity that took them there
 
     def select(self, rows: np.ndarray) -> Expansion:
         return Expansion(*(field[rows] for field in self))
@@ -241,6 +279,14 @@ class LookaheadPolicy:
             raise ValueError(f"lookahead_depth must be at least 1, not {self.depth}")
         # Levels under this are weak: below T_s, and the marginal band above it if there is one.
         self.weak_levels = min(2, scenario.channel.level_count - 1)
+        self.others_model = scenario.policy.others_model
+        self.orca_time_horizon = scenario.policy.orca_time_horizon_s
+
+    def others_velocity(self, observation: Observation) -> np.ndarray:
+        """The velocity (N, K, 2) each other is predicted to fly over the next step."""
+        if self.others_model == "reciprocal":
+            return reciprocal_velocities(observation, self.orca_time_horizon, self.dt)
+        return observation.others_velocity
 
     def values(self, states: np.ndarray) -> np.ndarray:
         return self.value_net(states).astype(np.float64)
@@ -259,7 +305,7 @@ class LookaheadPolicy:
 
     def expand(self, observation: Observation, radio_map: RadioMap) -> Expansion:
         """Each candidate action of each UAV of ``observation`` (its J_n nearest others
-        only) one step ahead, others propagated at their velocity."""
+        only) one step ahead, others propagated by the scenario's others_model."""
         speeds, headings = self.actions.candidates(observation.heading)  # (N, A)
         velocity = velocity_of(speeds, headings)  # (N, A, 2)
         position = observation.position[:, None, :]
@@ -267,13 +313,14 @@ class LookaheadPolicy:
         arrived = closest_approach(position - destination, velocity, self.dt) <= self.tolerance
         next_position = np.where(arrived[..., None], destination, position + velocity * self.dt)
 
-        others_next = observation.others_position + observation.others_velocity * self.dt
+        others_velocity = self.others_velocity(observation)
+        others_next = observation.others_position + others_velocity * self.dt
         gap = smallest_gaps(
             position,
             velocity,
             observation.radius[:, None],
             observation.others_position[:, None],
-            observation.others_velocity[:, None],
+            others_velocity[:, None],
             observation.others_radius[:, None],
             observation.others_present[:, None],
             self.dt,
@@ -293,7 +340,7 @@ class LookaheadPolicy:
             observation.max_speed[:, None],
             level,
             others_next[:, None],
-            observation.others_velocity[:, None],
+            others_velocity[:, None],
             observation.others_present[:, None],
             self.observed_uavs,
             below if self.options.disconnection_memory else None,
@@ -308,7 +355,7 @@ class LookaheadPolicy:
             terminal |= lost
             reward = reward + self.options.disconnection_reward * lost
         return Expansion(speeds, headings, velocity, next_position, level, below, reward,
-                         terminal, states, others_next)
+                         terminal, states, others_next, others_velocity)
 
     def scores(self, expansion: Expansion, follow: np.ndarray) -> np.ndarray:
         """R + gamma * ``follow`` (the value of what comes after), nothing after a terminal."""
@@ -323,12 +370,13 @@ class LookaheadPolicy:
     def after(self, observation: Observation, expansion: Expansion, uav: np.ndarray,
               action: np.ndarray) -> Observation:
         """Observations one step on, one per pair of ``uav`` and ``action`` taken: the UAV where
-        the action leaves it, the others where their velocity takes them."""
+        the action leaves it, the others where the others model takes them."""
         moved = {name: getattr(expansion, name)[uav, action]
                  for name in ("position", "velocity", "heading", "level", "below_steps")}
         return dataclasses.replace(observation.select(uav), **moved,
                                    step=observation.step[uav] + 1,
-                                   others_position=expansion.others_position[uav])
+                                   others_position=expansion.others_position[uav],
+                                   others_velocity=expansion.others_velocity[uav])
 
     def deep_scores(self, observation: Observation, expansion: Expansion,
                     radio_map: RadioMap, depth: int, searched: np.ndarray) -> np.ndarray:
