@@ -355,7 +355,7 @@ def test_fit_sinr_refuses_bad_arguments(capsys, tmp_path):
 def test_online_map_writes_figure_and_timeline(capsys, tmp_path, small_map):
     out = tmp_path / "fig2b.png"
     code, _, err = run(capsys, "online-map", "--model", str(small_map), "--period", "20",
-                       "--uavs", "20", "--out", str(out))
+                       "--uavs", "8", "--out", str(out))
     assert code == 0 and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     timeline = json.loads(out.with_suffix(".json").read_text())
     assert len(timeline["t"]) == len(timeline["accuracy"]) == 90
@@ -378,7 +378,7 @@ def test_a_restarted_mapper_weighs_reports_by_the_estimate_its_map_was_made_with
         mapper, now = _online(mapping_scenario, network, accuracy, background=False,
                               estimate=estimate, version=7)
         _fly(mapper, Fleet(mapping_scenario, 20, np.random.default_rng(4)), mapping_scenario,
-             setting, 60, 0, now)
+             setting, 30, 0, now)
         detections[name] = _types(mapper).count("change_detected")
     assert detections == {"with": 0, "without": 1}
 
