@@ -87,7 +87,8 @@ def map_card(weights: PublishedWeights, published: float) -> dict[str, Any]:
     """The card saved beside a published SINR map: what a restarted cloud carries on with."""
     return {"version": weights.version, "accuracy": weights.accuracy, "sha256": weights.sha256,
             "published": published,
-            "estimate": None if weights.estimate is None else weights.estimate._asdict()}
+            "estimate": None if weights.estimate is None else weights.estimate._asdict(),
+            "refining_since": weights.refining_since}
 
 
 def estimate_of(card: dict[str, Any]) -> EstimatedJammer | None:
@@ -167,13 +168,16 @@ class CloudService:
             raise WeightsError(f"{path}: its card states no accuracy")
         version = int(card.get("version", 0))
         estimate = estimate_of(card)
+        refining_since = card.get("refining_since")
         # The survey map stays the base every estimate corrects, whichever map is in service.
         base, _ = load_network(sinr_net, {"kind": "sinr_map", "input_size": spec.feature_size,
                                           "levels": spec.level_count})
         self.mapper = OnlineSinrMapper(self.scenario, self.memory, network, float(accuracy),
                                        base_network=base,
                                        publish=self._on_retrained, retrain=retrain,
-                                       version=version, estimate=estimate)
+                                       version=version, estimate=estimate,
+                                       refining_since=refining_since
+                                       if isinstance(refining_since, int | float) else None)
         data = path.read_bytes()
         return SinrMap(version=version, mode="online", sha256=sha256(data), data=data,
                        accuracy=float(accuracy))

@@ -194,6 +194,9 @@ class PublishedWeights(NamedTuple):
     version: int
     accuracy: float  # held-out accuracy on what it was trained on
     estimate: JammerEstimate | None  # the jammer estimate the map was corrected with
+    # When the change it answers began, while the estimate is still being refined (None once
+    # a map settles it): a restarted cloud goes on refining from there.
+    refining_since: float | None = None
 
 
 @dataclass(frozen=True)
@@ -258,7 +261,9 @@ class OnlineSinrMapper:
 
     ``clock`` stamps the events: time.time in service, the simulated time in simulations.
     ``estimate``: the jammer estimate behind ``network``, for a cloud that restarts on the map
-    it last published (the detector weighs reports by it, see ``_report_probability``).
+    it last published (the detector weighs reports by it, see ``_report_probability``), and
+    ``refining_since`` the start of the change that map was still refining: the refinement
+    goes on from the memory, which the restart kept.
     """
 
     def __init__(
@@ -277,6 +282,7 @@ class OnlineSinrMapper:
         version: int = 0,
         seed: int = 0,
         estimate: JammerEstimate | None = None,
+        refining_since: float | None = None,
     ):
         self.scenario = scenario
         self.memory = memory
@@ -302,6 +308,9 @@ class OnlineSinrMapper:
         self._worker: threading.Thread | None = None
         if estimate is not None:
             self._estimate_sigma_db = self._shadowing_sigma(self._prior_positions())
+            if refining_since is not None:  # as if that map had just been fitted
+                done = len(memory.since(refining_since))
+                self._change = _Change(refining_since, done, estimate, done, done)
 
     @property
     def version(self) -> int:
@@ -454,7 +463,8 @@ class OnlineSinrMapper:
             self._accuracy = result.accuracy
             self.estimate, self._estimate_sigma_db = estimate, sigma_db
             published = PublishedWeights(weights, sha256(weights), self._version,
-                                         result.accuracy, estimate)
+                                         result.accuracy, estimate,
+                                         None if estimate is None else change.start)
             if estimate is not None:
                 self.events.append({"type": "jammer_estimated", "t": self.clock(),
                                     "map_version": self._version, **estimate._asdict()})

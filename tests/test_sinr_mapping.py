@@ -385,9 +385,30 @@ def test_a_restarted_mapper_weighs_reports_by_the_estimate_its_map_was_made_with
 
 def test_a_published_maps_card_keeps_its_estimate_for_a_restart():
     estimate = EstimatedJammer(True, 1.5, -2.0, 0.8, 9.0, 2.5, 3.0, 0.7, 1234, 40.0, 0.3)
-    weights = PublishedWeights(b"", "0" * 64, 3, 0.97, estimate)
+    weights = PublishedWeights(b"", "0" * 64, 3, 0.97, estimate, 12.5)
     card = json.loads(json.dumps(map_card(weights, 1.0)))
-    assert estimate_of(card) == estimate
+    assert estimate_of(card) == estimate and card["refining_since"] == 12.5
     assert estimate_of(json.loads(json.dumps(map_card(weights._replace(estimate=None), 1.0)))
                        ) is None
     assert estimate_of({"estimate": {"present": True}}) is None  # unreadable: none, no error
+
+
+def test_a_restarted_mapper_goes_on_refining_the_change_its_map_answered(mapping_scenario,
+                                                                       no_jammer_map):
+    """A cloud killed while it refined an estimate comes back refining it, from the memory the
+    restart kept, until the map settles; it does not stop at the rough first map."""
+    network, accuracy = no_jammer_map
+    setting = TABLE_I_JAMMERS[0]
+    rough = EstimatedJammer(present=True, x=setting.x + 4.0, y=setting.y + 6.0, power_w=0.8,
+                            effective_power_dbm=9.0, sd_x_m=5.0, sd_y_m=7.0, sd_power_db=1.3,
+                            measurements=600, log_likelihood_ratio=15.0)
+    mapper, now = _online(mapping_scenario, network, accuracy, background=False,
+                          estimate=rough, refining_since=0.0, version=1)
+    assert mapper.state()["phase"] == "refining"
+    _fly(mapper, Fleet(mapping_scenario, 20, np.random.default_rng(6)), mapping_scenario,
+         setting, 40, 0, now)
+    located = [e for e in mapper.events if e["type"] == "jammer_estimated"]
+    assert mapper.version > 1 and located and "change_detected" not in _types(mapper)
+    assert math.hypot(located[-1]["x"] - setting.x, located[-1]["y"] - setting.y) <= 3.0
+    assert mapper.state()["phase"] == "watching"
+
