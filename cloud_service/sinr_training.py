@@ -14,7 +14,6 @@ import torch
 from torch.nn import functional
 
 from cloud_service.sinr_mapping import (
-    FRESH_MEASUREMENTS,
     measurements_at,
     simulated_measurements,
     uniform_positions,
@@ -33,6 +32,7 @@ L2 = 1e-4  # paper, as Adam's weight decay
 # runs). A cosine decay to FINAL_LR over the step budget settles them; it starts at the
 # paper's rate.
 FINAL_LR = 1e-5
+FRESH_MEASUREMENTS = 20_000  # scored after fitting: +-0.1 point on an accuracy near 98 %
 _EVAL_EVERY = 100  # steps between held-out checks (early stop on target accuracy)
 
 
