@@ -18,15 +18,10 @@ from benchmarks.bench_bus import ROOT, free_endpoint, up_report
 from benchmarks.common import Figure
 from shared import bus
 from shared.messages import Action, WorldState, decode
+from shared.resources import resident_mib
 from shared.topics import Topics
 
 COLD_START_RUN_S = 60  # wall seconds the live system may run for the cold-start measurement
-
-
-def rss_mib(pid: int) -> float:
-    status = Path(f"/proc/{pid}/status").read_text()
-    return next(int(line.split()[1]) for line in status.splitlines()
-                if line.startswith("VmRSS")) / 1024
 
 
 def agent_pids(endpoint: str) -> dict[str, int]:
@@ -83,7 +78,7 @@ def cold_start(run_dir: Path) -> tuple[float, float]:
             session.declare_subscriber(topics.state, on_state)
             wait_for(lambda: len(actions) > 20, 60, "steady flight")
             pids = agent_pids(endpoint)
-            memory = max(rss_mib(pid) for pid in pids.values())
+            memory = max(resident_mib(pid) for pid in pids.values())
             os.kill(pids["0"], signal.SIGKILL)
             killed = time.time()
             first = wait_for(lambda: successor_acted(killed), 30,

@@ -9,6 +9,7 @@ controllers.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import NamedTuple, Protocol
 
@@ -46,26 +47,36 @@ def fleet_observation(world: VectorWorld) -> Observation:
 
 
 class RasterMaps:
-    """Radio maps of the world's environments as rasters, cached per jammer setting."""
+    """Radio maps of the world's environments as rasters, the ``kept`` most recently used
+    jammer settings cached. A training run meets hundreds of settings, and each raster grows
+    its own route fields (megabytes with the extended method): keeping them all grew a
+    20,000-episode run's memory by gigabytes. No more than one setting per environment is in
+    flight at once, so keeping twice the environments flown never samples a raster twice."""
 
-    def __init__(self, scenario: Scenario, jam: bool = True):
+    def __init__(self, scenario: Scenario, jam: bool = True, kept: int = 128):
         self.scenario = scenario
         self.radio = RadioModel(scenario)
         self.jam = jam
-        self.cache: dict[tuple[float, ...], LevelRaster] = {}
+        self.kept = kept
+        self.cache: OrderedDict[tuple[float, ...], LevelRaster] = OrderedDict()
 
     def raster(self, jammer: JammerParams | None) -> LevelRaster:
         key = () if jammer is None or jammer.power_w == 0 else tuple(map(float, jammer))
-        if key not in self.cache:
+        if key in self.cache:
+            self.cache.move_to_end(key)
+        else:
             params = JammerParams(*key) if key else None
             self.cache[key] = LevelRaster.sample(
                 self.scenario, lambda xy: self.radio.evaluate(xy, params).level, MAP_SPACING_M
             )
+            if len(self.cache) > self.kept:
+                self.cache.popitem(last=False)
         return self.cache[key]
 
     def __call__(self, world: VectorWorld, rows: np.ndarray) -> RadioMap:
         if not self.jam:
             return RasterMap(self.scenario, [self.raster(None)], np.zeros(rows.size, np.int64))
+        self.kept = max(self.kept, 2 * world.num_envs)  # never evict a setting in flight
         env = rows // world.num_uavs
         jammers = [(world.jammer_x[e], world.jammer_y[e], world.jammer_power[e],
                     world.jammer_height[e]) for e in range(world.num_envs)]

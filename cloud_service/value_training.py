@@ -55,6 +55,7 @@ from shared.outcomes import Outcome
 from shared.paper import TABLE_I_JAMMERS
 from shared.policy import LookaheadPolicy
 from shared.radio import JammerParams
+from shared.resources import resident_mib
 from shared.scenario import Scenario
 from world_sim.core import StepResult, VectorWorld, episode_seed
 
@@ -564,7 +565,8 @@ def train(
             next_episode += chunk
             log_handle.flush()
             scores.append({"episode": done, **validate(scenario, net.inference(),
-                                                       config.validation_episodes, uavs)})
+                                                       config.validation_episodes, uavs),
+                           "resident_mib": resident_mib()})
             leader = best_score(scores)
             if leader is scores[-1]:
                 best.load_state_dict(net.state_dict())
@@ -584,6 +586,7 @@ def train(
     wall = wall_before + time.perf_counter() - session_start
     validation = dict(best_score(scores))
     selected_episode = validation.pop("episode")
+    validation.pop("resident_mib", None)
     card = {
         "command": command,
         "scenario": scenario.name,
@@ -605,8 +608,8 @@ def train(
         "selection": {
             "rule": "the checkpoint with the highest validation success; ties go to the later",
             "selected_episode": selected_episode,
-            "checkpoints": [{"episode": s["episode"], "success_rate": s["success_rate"]}
-                            for s in scores],
+            "checkpoints": [{"episode": s["episode"], "success_rate": s["success_rate"],
+                             "resident_mib": s.get("resident_mib")} for s in scores],
         },
         "reproduce": command or "jamnav train",
     }

@@ -58,6 +58,7 @@ from jamnav.supervisor import (
 )
 from shared.measurements import MeasurementSpec
 from shared.messages import ProcessStatus
+from shared.resources import resident_mib
 from shared.scenario import Scenario
 from uav_agent.uploads import OutboxFile, outbox_path
 
@@ -117,16 +118,6 @@ def still_running(pid: int, started: int | None) -> bool:
     fields = _stat_fields(pid)
     return fields is not None and fields[0] != "Z" and (
         started is None or int(fields[19]) == started)
-
-
-def resident_mib(pid: int) -> float | None:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    except (FileNotFoundError, ProcessLookupError):
-        pass
-    return None
 
 
 # -- the run ------------------------------------------------------------------------------------

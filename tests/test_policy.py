@@ -265,3 +265,24 @@ def test_the_numpy_forward_decides_as_the_torch_module_does(scenario):
         decided += rows.size
         world.step(*LookaheadController(in_numpy, maps).act(world))
     assert decided > 400
+
+
+def test_raster_maps_keep_the_recent_settings_and_never_one_in_flight(scenario):
+    """A long run meets hundreds of jammer settings: only the most recent stay cached, and a
+    setting evicted and met again gives the same raster."""
+    maps = perfect_maps(scenario)
+    maps.kept = 2
+    settings = [JammerParams(x, 0.0, 1.0, scenario.jammer.height_m) for x in (-20.0, 0.0, 20.0)]
+    first = maps.raster(settings[0]).levels.copy()
+    for setting in settings[1:]:
+        maps.raster(setting)
+    assert list(maps.cache) == [tuple(settings[1]), tuple(settings[2])]
+    np.testing.assert_array_equal(maps.raster(settings[0]).levels, first)
+    assert len(maps.cache) == 2
+
+    world = VectorWorld(scenario, 3, 2)  # three environments, three settings in flight
+    world.reset(np.arange(3), [episode_seed(0, k) for k in range(3)])
+    for env, setting in enumerate(settings):
+        world.set_jammer([env], setting)
+    maps(world, np.arange(6))
+    assert len(maps.cache) == 3 and maps.kept >= 3

@@ -38,6 +38,8 @@ def test_outputs_card_and_resume(scenario, tmp_path):
     # Where the weights were made, as far as they depend on it (Linux names its CPU's flags).
     assert card["cpu"]["model"] and card["cpu"]["kernel"] == platform.release()
     assert set(card["cpu"]["flags"]) <= set(ARITHMETIC_FLAGS)
+    # The memory at each checkpoint, so a long run shows whether it stays flat.
+    assert all(50 < c["resident_mib"] < 4096 for c in card["selection"]["checkpoints"])
     for name in ("value_net.safetensors", "value_net.json", "train_log.csv", "reward_curve.png"):
         assert (tmp_path / name).is_file(), name
     network, saved = load_network(tmp_path / "value_net.safetensors")
