@@ -17,6 +17,8 @@ def shipped_dir(name: str) -> Path:
 MODELS_DIR = shipped_dir("models")
 VALUE_NET = MODELS_DIR / "value_net.safetensors"  # the paper's method
 EXTENDED_VALUE_NET = MODELS_DIR / "value_net_extended.safetensors"
+# The paper's method trained in scenarios/icc2021-tt6.toml, where it flies as the paper reports.
+PAPER_TT6_VALUE_NET = MODELS_DIR / "value_net_paper_tt6.safetensors"
 SINR_MAP_NO_JAMMER = MODELS_DIR / "sinr_map_no_jammer.safetensors"
 SINR_MAP_NO_JAMMER_SHADOWED = MODELS_DIR / "sinr_map_no_jammer_shadowed.safetensors"
 SINR_MAP_NO_JAMMER_CITY = MODELS_DIR / "sinr_map_no_jammer_city.safetensors"
@@ -32,10 +34,11 @@ def sinr_map_for(scenario_name: str) -> Path:
 
 
 # The shipped value networks by name; every command that takes one defaults to the best.
-VALUE_NETS = {"extended": EXTENDED_VALUE_NET, "paper": VALUE_NET}
+VALUE_NETS = {"extended": EXTENDED_VALUE_NET, "paper": VALUE_NET, "paper-tt6": PAPER_TT6_VALUE_NET}
 DEFAULT_VALUE_NET = "extended"
 VALUE_NET_HELP = ("value network: a shipped one by name (extended, the default and the best; "
-                  "paper, the paper's method) or a safetensors path")
+                  "paper, the paper's method; paper-tt6, the paper's method trained for "
+                  "--scenario icc2021-tt6) or a safetensors path")
 
 
 def value_net_path(name_or_path: str | Path) -> Path:

@@ -78,3 +78,12 @@ def test_with_jammer_keeps_height_and_validates():
     assert (moved.jammer.x, moved.jammer.y, moved.jammer.power_w) == (25.0, -10.0, 0.5)
     assert moved.jammer.height_m == scenario.jammer.height_m
     assert not scenario.without_jammer().jammer.enabled
+
+
+def test_the_tt6_world_is_icc2021_but_for_the_disconnection_limit():
+    """docs/paper_ablation.md reads icc2021-tt6 as one difference from icc2021: the files must
+    not drift apart."""
+    base, tt6 = load_scenario("icc2021").model_dump(), load_scenario("icc2021-tt6").model_dump()
+    assert tt6["timing"].pop("disconnection_limit_s") == 6.0
+    assert base["timing"].pop("disconnection_limit_s") == 3.0
+    assert {**tt6, "name": "icc2021"} == base
