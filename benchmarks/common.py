@@ -21,7 +21,8 @@ class Figure:
             return ""
         met = self.value <= self.target if self.lower_is_better else self.value >= self.target
         relation = "<=" if self.lower_is_better else ">="
-        return f"{'met' if met else 'MISSED'} (target {relation} {self.target:,.0f})"
+        target = f"{self.target:,.0f}" if abs(self.target) >= 100 else f"{self.target:g}"
+        return f"{'met' if met else 'MISSED'} (target {relation} {target})"
 
 
 def best_rate(work: Callable[[], int], repeats: int = 5, min_seconds: float = 0.5) -> float:

@@ -43,7 +43,7 @@ from shared.outcomes import Outcome
 from shared.paper import JammerSetting
 from shared.policy import LookaheadPolicy, RasterMap, sinr_network_raster
 from shared.scenario import Scenario
-from shared.shipped import VALUE_NET, sinr_map_for
+from shared.shipped import DEFAULT_VALUE_NET_PATH, sinr_map_for
 from world_sim.core import VectorWorld
 
 METHODS = ("proposed", "perfect", "outdated", "orca", "straight")
@@ -174,7 +174,7 @@ def evaluate(
     seed: int,
     jammer: JammerSetting | None,
     uavs: int | None = None,
-    value_net: Path = VALUE_NET,
+    value_net: Path = DEFAULT_VALUE_NET_PATH,
     sinr_map: Path | None = None,
     on_episode: Callable[[int], None] | None = None,
     swap_every: int | None = None,

@@ -36,6 +36,7 @@ def sinr_map_for(scenario_name: str) -> Path:
 # The shipped value networks by name; every command that takes one defaults to the best.
 VALUE_NETS = {"extended": EXTENDED_VALUE_NET, "paper": VALUE_NET, "paper-tt6": PAPER_TT6_VALUE_NET}
 DEFAULT_VALUE_NET = "extended"
+DEFAULT_VALUE_NET_PATH = VALUE_NETS[DEFAULT_VALUE_NET]
 VALUE_NET_HELP = ("value network: a shipped one by name (extended, the default and the best; "
                   "paper, the paper's method; paper-tt6, the paper's method trained for "
                   "--scenario icc2021-tt6) or a safetensors path")

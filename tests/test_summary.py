@@ -3,8 +3,17 @@ missing, success before and after a jammer swap, and the value network named."""
 
 from __future__ import annotations
 
+import inspect
+
+from cloud_service.evaluation import evaluate
 from jamnav.supervisor import summary_table, swap_rates
-from shared.shipped import EXTENDED_VALUE_NET, VALUE_NET, value_net_name
+from shared.shipped import (
+    DEFAULT_VALUE_NET,
+    EXTENDED_VALUE_NET,
+    VALUE_NET,
+    value_net_name,
+    value_net_path,
+)
 
 
 def _report(**changes) -> dict:
@@ -61,3 +70,10 @@ def test_the_value_network_is_named_by_its_shipped_name_or_its_path(tmp_path):
     assert value_net_name(EXTENDED_VALUE_NET) == "extended"
     assert value_net_name(VALUE_NET) == "paper"
     assert value_net_name(tmp_path / "mine.safetensors") == str(tmp_path / "mine.safetensors")
+    assert value_net_name(value_net_path("paper-tt6")) == "paper-tt6"
+
+
+def test_the_library_flies_the_best_network_by_default_too():
+    """A benchmark or a notebook calling evaluate() gets what `jamnav eval` gets."""
+    default = inspect.signature(evaluate).parameters["value_net"].default
+    assert value_net_name(default) == DEFAULT_VALUE_NET == "extended"
