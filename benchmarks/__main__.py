@@ -12,7 +12,7 @@ import time
 
 BENCHMARKS = ["bench_radio", "bench_world", "bench_policy", "bench_sinr", "bench_adaptation",
               "bench_bus", "bench_fleet", "bench_outbox", "bench_recording", "bench_console",
-              "bench_scale"]
+              "bench_scale", "bench_planning"]
 
 
 def main() -> int:
