@@ -15,7 +15,8 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-from shared.features import Observation, decision_reach, nearby_others
+from shared.features import Observation, decision_reach
+from shared.neighbours import nearby_others
 from shared.orca import orca_velocities, preferred_velocity_toward
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting, jammer_params

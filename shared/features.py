@@ -11,7 +11,6 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from shared.kinematics import wrap_angle
 from shared.scenario import Scenario
@@ -116,8 +115,9 @@ class Observation:
         others: np.ndarray | None = None,
     ) -> Observation:
         """Observations of every UAV of E fleets of J (arrays (E, J, ...), step (E,)), each
-        seeing the others of its own fleet that ``others`` (E, J, M) lists (``nearby_others``:
-        indices, -1 for none), or all J - 1 of them; rows are ordered env-major."""
+        seeing the others of its own fleet that ``others`` (E, J, M) lists
+        (``shared.neighbours.nearby_others``: indices, -1 for none), or all J - 1 of them;
+        rows are ordered env-major."""
         e, j = active.shape
         if others is None:
             column = np.arange(max(j - 1, 0))
@@ -176,38 +176,6 @@ def decision_relevant(observation: Observation, count: int, reach: np.ndarray) -
     ranked = np.zeros(distance.shape, dtype=bool)
     np.put_along_axis(ranked, nearest, True, axis=1)
     return observation.others_present & (ranked | (distance <= reach[:, None]))
-
-
-def nearby_others(position: np.ndarray, active: np.ndarray, count: int,
-                  reach: float) -> np.ndarray | None:
-    """The others each UAV of E fleets of J (position (E, J, 2), active (E, J)) must see to
-    decide as if it saw them all (``decision_relevant``): indices (E, J, M) of its ``count``
-    nearest active others and of every active one within ``reach``, nearest first, -1 where a
-    row has fewer. None when every other is among the ``count`` nearest anyway. A k-d tree per
-    fleet keeps this O(J log J), where the full view of the J - 1 others is O(J^2)."""
-    e, j = active.shape
-    if j - 1 <= count:
-        return None
-    rows = np.arange(j)[:, None]
-    picked = []
-    for env in range(e):
-        members = np.flatnonzero(active[env])
-        if members.size == 0:
-            picked.append(np.empty((j, 0), dtype=np.int64))
-            continue
-        tree = cKDTree(position[env, members])
-        in_reach = tree.query_ball_point(position[env], reach, return_length=True)
-        # One more than wanted: an active UAV finds itself first.
-        k = min(members.size, max(count, int(in_reach.max())) + 1)
-        _, nearest = tree.query(position[env], k=k)
-        found = members[nearest.reshape(j, k)]
-        kept = np.argsort(found == rows, axis=1, kind="stable")[:, : k - 1]
-        picked.append(np.take_along_axis(found, kept, axis=1))
-    width = max(p.shape[1] for p in picked)
-    out = np.full((e, j, width), -1, dtype=np.int64)
-    for env, found in enumerate(picked):
-        out[env, :, : found.shape[1]] = found
-    return out
 
 
 def joint_state(

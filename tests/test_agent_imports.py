@@ -33,7 +33,8 @@ seen = AgentObservation(
     others_present=[True])
 decision = models.policy.decide(seen.observation(), models.radio_map)
 print(json.dumps({"speed": float(decision.speed[0]),
-                  "torch": sorted(name for name in sys.modules if name.split(".")[0] == "torch")}))
+                  "torch": sorted(name for name in sys.modules if name.split(".")[0] == "torch"),
+                  "kd_tree": "scipy.spatial" in sys.modules}))
 """
 
 
@@ -44,6 +45,8 @@ def test_an_agent_imports_and_flies_without_torch(scenario):
     assert done.returncode == 0, done.stderr
     flown = json.loads(done.stdout.splitlines()[-1])
     assert flown["torch"] == []
+    # An agent is sent its neighbours: the world's k-d tree would cost it 7.5 MiB.
+    assert flown["kd_tree"] is False
     assert 0.0 <= flown["speed"] <= scenario.uav.max_speed_mps
 
 

@@ -26,7 +26,7 @@ import numpy as np
 import zenoh
 
 from shared import access, bus
-from shared.features import Observation, decision_reach, decision_relevant, nearby_others
+from shared.features import Observation, decision_reach, decision_relevant
 from shared.messages import (
     Action,
     AgentObservation,
@@ -45,6 +45,7 @@ from shared.messages import (
     encode,
     outcome_labels,
 )
+from shared.neighbours import nearby_others
 from shared.radio import RadioModel
 from shared.scenario import MAX_UAVS, Scenario, ScenarioError, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
