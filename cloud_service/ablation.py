@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         for variant in VARIANTS:
             changed(base, variant.scenario, variant.name)
     except (ScenarioError, ValueError) as error:
-        print(f"jamnav ablation: {str(error).splitlines()[0]}", file=sys.stderr)
+        print(f"ablation: {str(error).splitlines()[0]}", file=sys.stderr)
         return 2
     chosen = [known[name] for name in args.only] if args.only else list(VARIANTS)
     done = {v.name: json.loads(p.read_text()) for v in chosen

@@ -60,3 +60,9 @@ def test_an_unknown_variant_is_a_one_line_error(tmp_path, capsys):
         ablation.main(["--out", str(tmp_path), "--only", "no-such"])
     assert exit_info.value.code == 2
     assert "unknown variant(s) no-such" in capsys.readouterr().err
+
+
+def test_an_unknown_scenario_is_a_one_line_error(tmp_path, capsys):
+    assert ablation.main(["--scenario", "no-such-world", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ablation: scenario no-such-world: no such file") and err.count("\n") == 1
