@@ -63,18 +63,6 @@ VARIANTS = (
 )
 
 
-def changed(scenario: Scenario, changes: dict[str, Any], name: str) -> Scenario:
-    """``scenario`` with each dotted key set, validated as a scenario file would be."""
-    data = scenario.model_dump()
-    for dotted, value in changes.items():
-        section, key = dotted.split(".")
-        if key not in data.get(section, {}):
-            raise ScenarioError(f"{dotted}: no such scenario value")
-        data[section][key] = value
-    data["name"] = name
-    return Scenario.model_validate(data)
-
-
 def run_variant(variant: Variant, base: Scenario, out: Path, episodes: int, eval_episodes: int,
                 seed: int) -> dict[str, Any]:
     """Train the paper's method on the variant's world and fly it with perfect maps on each of
@@ -83,7 +71,7 @@ def run_variant(variant: Variant, base: Scenario, out: Path, episodes: int, eval
     from cloud_service.evaluation import evaluate  # torch: only in the worker that trains
     from cloud_service.value_training import TrainConfig, train
 
-    scenario = changed(base, variant.scenario, f"{base.name}+{variant.name}")
+    scenario = base.changed(variant.scenario, f"{base.name}+{variant.name}")
     run_dir = out / variant.name
     started = time.perf_counter()
     config = TrainConfig(episodes=episodes * variant.episodes_factor, seed=seed, method="paper")
@@ -181,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         base = load_scenario(args.scenario)
         for variant in VARIANTS:
-            changed(base, variant.scenario, variant.name)
+            base.changed(variant.scenario)
     except (ScenarioError, ValueError) as error:
         print(f"ablation: {str(error).splitlines()[0]}", file=sys.stderr)
         return 2
@@ -193,12 +181,13 @@ def main(argv: list[str] | None = None) -> int:
           f"({args.episodes:,} episodes each, {args.jobs} at once)", flush=True)
     jobs = [(v, args.scenario, args.out, args.episodes, args.eval_episodes, args.seed)
             for v in todo]
-    with multiprocessing.get_context("spawn").Pool(min(args.jobs, max(1, len(todo)))) as pool:
-        for result in pool.imap_unordered(_run_in_worker, jobs):
-            done[result["variant"]] = result
-            mean = result["table_i_mean"]["success_rate"]
-            print(f"{result['variant']}: Table I mean success {mean:.1%} with perfect maps "
-                  f"({result['wall_seconds']:.0f} s)", flush=True)
+    if jobs:
+        with multiprocessing.get_context("spawn").Pool(min(args.jobs, len(jobs))) as pool:
+            for result in pool.imap_unordered(_run_in_worker, jobs):
+                done[result["variant"]] = result
+                mean = result["table_i_mean"]["success_rate"]
+                print(f"{result['variant']}: Table I mean success {mean:.1%} with perfect "
+                      f"maps ({result['wall_seconds']:.0f} s)", flush=True)
     results = [done[v.name] for v in chosen]
     command = "python -m cloud_service.ablation " + " ".join(argv or sys.argv[1:])
     args.out.mkdir(parents=True, exist_ok=True)

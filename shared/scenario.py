@@ -11,7 +11,7 @@ import math
 import sys
 from functools import cached_property
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -228,16 +228,27 @@ class Scenario(_Strict):
     def connectivity_check_steps(self) -> int:
         return self.rewards.connectivity_check_every_steps or self.timing.disconnection_limit_steps
 
-    def with_jammer(self, x: float, y: float, power_w: float) -> Scenario:
-        """The same scenario with the jammer moved (height and efficiency kept)."""
+    def changed(self, changes: dict[str, Any], name: str | None = None) -> Scenario:
+        """The same scenario with each ``"section.key"`` of ``changes`` set (and renamed
+        ``name``), validated as a scenario file would be."""
         data = self.model_dump()
-        data["jammer"].update(enabled=True, x=x, y=y, power_w=power_w)
+        for dotted, value in changes.items():
+            section, _, key = dotted.partition(".")
+            values = data.get(section)
+            if not isinstance(values, dict) or key not in values:
+                raise ScenarioError(f"{dotted}: no such scenario value")
+            values[key] = value
+        if name is not None:
+            data["name"] = name
         return Scenario.model_validate(data)
 
+    def with_jammer(self, x: float, y: float, power_w: float) -> Scenario:
+        """The same scenario with the jammer moved (height and efficiency kept)."""
+        return self.changed({"jammer.enabled": True, "jammer.x": x, "jammer.y": y,
+                             "jammer.power_w": power_w})
+
     def without_jammer(self) -> Scenario:
-        data = self.model_dump()
-        data["jammer"]["enabled"] = False
-        return Scenario.model_validate(data)
+        return self.changed({"jammer.enabled": False})
 
 
 def resolve_scenario_path(name_or_path: str | Path | None) -> Path:

@@ -27,10 +27,8 @@ def write_variant(tmp_path: Path, old: str, new: str, base: str = "icc2021") -> 
 
 def variant(base: Scenario, **sections) -> Scenario:
     """A copy of ``base`` with some fields of some sections replaced."""
-    data = base.model_dump()
-    for section, values in sections.items():
-        data[section].update(values)
-    return Scenario.model_validate(data)
+    return base.changed({f"{section}.{key}": value for section, values in sections.items()
+                         for key, value in values.items()})
 
 
 @pytest.fixture

@@ -14,7 +14,7 @@ from shared.scenario import ScenarioError
 
 def test_every_variant_changes_exactly_what_it_names(scenario):
     for variant in ablation.VARIANTS:
-        world = ablation.changed(scenario, variant.scenario, variant.name)
+        world = scenario.changed(variant.scenario, variant.name)
         before, after = scenario.model_dump(), world.model_dump()
         differing = {f"{section}.{key}" for section, values in after.items()
                      if isinstance(values, dict)
@@ -25,9 +25,9 @@ def test_every_variant_changes_exactly_what_it_names(scenario):
 
 def test_a_misspelt_or_invalid_change_is_refused(scenario):
     with pytest.raises(ScenarioError, match="uav.turn_rate: no such scenario value"):
-        ablation.changed(scenario, {"uav.turn_rate": 90.0}, "x")
+        scenario.changed({"uav.turn_rate": 90.0}, "x")
     with pytest.raises(ValueError):
-        ablation.changed(scenario, {"timing.step_s": -1.0}, "x")
+        scenario.changed({"timing.step_s": -1.0}, "x")
 
 
 def fake_result(name: str, success: float) -> dict:
