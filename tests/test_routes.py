@@ -3,6 +3,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from shared.routes import RouteGrid
 
@@ -42,3 +45,32 @@ def test_rows_read_their_own_destination_and_fields_are_cached():
     assert len(routes.cache) == 2
     routes.distance(xy, destinations)
     assert len(routes.cache) == 2
+
+
+@settings(max_examples=40, deadline=None)
+@given(rows=st.integers(2, 24), cols=st.integers(2, 24), seed=st.integers(0, 2**32 - 1),
+       cost=st.floats(1.0, 60.0), cell=st.sampled_from([0.5, 1.0, 2.0, 3.7]))
+def test_the_numpy_sweeps_and_dijkstra_give_the_same_field_bit_for_bit(rows, cols, seed, cost,
+                                                                      cell):
+    """An agent's single destination is swept in numpy, a batch goes to scipy's Dijkstra: on
+    any map they must agree exactly, or an agent would fly other routes than the evaluation."""
+    rng = np.random.default_rng(seed)
+    covered = rng.random((rows, cols)) < rng.uniform(0.3, 1.0)
+    routes = RouteGrid(covered, 0.0, 0.0, cell, cost)
+    destinations = rng.choice(rows * cols, size=min(3, rows * cols), replace=False).tolist()
+    batch = routes._dijkstra(destinations)
+    for node, expected in zip(destinations, batch, strict=True):
+        np.testing.assert_array_equal(routes._swept_fields(node)[0].ravel(), expected)
+
+
+def test_a_swept_field_is_the_route_round_a_wall_not_through_it():
+    """Hand-computed: a 3 x 3 grid of 1 m cells whose centre is uncovered (cost 9). To the
+    opposite corner: a step, a diagonal past the centre, a step (2 + sqrt 2), not through the
+    centre (2 x sqrt 2 x (1 + 9) / 2). Into the centre: a step then a half-covered one
+    (1 + (1 + 9) / 2 = 6), not the diagonal (sqrt 2 x 5 = 7.07)."""
+    covered = np.ones((3, 3), dtype=bool)
+    covered[1, 1] = False
+    field = RouteGrid(covered, 0.0, 0.0, 1.0, 9.0)._swept_fields(0)[0]
+    assert field[2, 2] == pytest.approx(2 + math.sqrt(2), abs=1e-12)
+    assert field[1, 1] == 6.0
+    assert field[0, 2] == 2.0
