@@ -48,7 +48,13 @@ from shared.policy import (
 )
 from shared.scenario import Scenario, ScenarioError, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
-from uav_agent.uploads import DEFAULT_BATCH, DEFAULT_CAPACITY, Uploader, open_outbox
+from uav_agent.uploads import (
+    DEFAULT_BATCH,
+    DEFAULT_CAPACITY,
+    DEFAULT_MAX_AGE_S,
+    Uploader,
+    open_outbox,
+)
 
 ROLE = "agent"
 TIMINGS_KEPT = 4096
@@ -110,7 +116,7 @@ class Models:
 class AgentService:
     def __init__(self, session, topics: Topics, scenario: Scenario, uav: int,
                  log: logging.Logger, upload_every: int = DEFAULT_BATCH,
-                 upload_after: float = 1.0,
+                 upload_after: float = DEFAULT_MAX_AGE_S,
                  outbox: int = DEFAULT_CAPACITY, outbox_dir: Path | None = None):
         self.session, self.topics, self.scenario, self.uav, self.log = (
             session, topics, scenario, uav, log)
@@ -283,7 +289,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--uav", type=int, default=None,
                         help="UAV to fly (default: ask the world for a free one)")
     parser.add_argument("--upload-every", type=int, default=DEFAULT_BATCH, metavar="N",
-                        help="measurements per upload (or fewer, once the oldest is 1 s old)")
+                        help="measurements per upload (or fewer, once the oldest is "
+                             f"{DEFAULT_MAX_AGE_S:g} s old)")
     parser.add_argument("--outbox", type=int, default=DEFAULT_CAPACITY, metavar="N",
                         help="measurements kept while the cloud does not acknowledge them "
                              "(beyond that the oldest are dropped, and counted)")
