@@ -88,7 +88,7 @@ def map_card(weights: PublishedWeights, published: float) -> dict[str, Any]:
     return {"version": weights.version, "accuracy": weights.accuracy, "sha256": weights.sha256,
             "published": published,
             "estimate": None if weights.estimate is None else weights.estimate._asdict(),
-            "refining_since": weights.refining_since}
+            "refining_since": weights.refining_since, "provisional": weights.provisional}
 
 
 def estimate_of(card: dict[str, Any]) -> EstimatedJammer | None:
@@ -302,8 +302,9 @@ class CloudService:
                           describe_estimate(estimate))
         self._publish_event(SinrWeightsPublished(
             t=time.time(), source=ROLE, version=weights.version, accuracy=update.accuracy,
-            sha256=weights.sha256, path=str(path.resolve())))
-        self.log.info("SINR map v%d published (held-out accuracy %.1f%%)", weights.version,
+            sha256=weights.sha256, path=str(path.resolve()), provisional=weights.provisional))
+        self.log.info("%sSINR map v%d published (held-out accuracy %.1f%%)",
+                      "provisional " if weights.provisional else "", weights.version,
                       100 * weights.accuracy)
 
     def _publish_event(self, event) -> None:

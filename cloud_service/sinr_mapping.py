@@ -34,9 +34,9 @@ from cloud_service.jammer_estimation import (
     REPORT_SIGMA_DB,
     JammerEstimate,
     corrected_level_probabilities,
-    corrected_levels,
     estimate_jammer,
     fit_shadowing_sigma,
+    jammer_hypotheses,
     positions_from_features,
 )
 from cloud_service.sinr_memory import SinrMemory, Uploads
@@ -196,6 +196,8 @@ class PublishedWeights(NamedTuple):
     # When the change it answers began, while the estimate is still being refined (None once
     # a map settles it): a restarted cloud goes on refining from there.
     refining_since: float | None = None
+    # Corrected by the jammer's hypotheses while no estimate converges (see OnlineSinrMapper).
+    provisional: bool = False
 
 
 @dataclass(frozen=True)
@@ -224,6 +226,9 @@ class RetrainConfig:
     min_samples: int = 4000
     # Mini-batches of 200 (~0.8 s on one core) per fit.
     steps: int = 1000
+    # ... per provisional map: a stopgap, out in a fraction of the time, that the next try
+    # replaces.
+    provisional_steps: int = 250
     max_seconds: float | None = 2.5  # a slow machine still publishes within ~3 s of the data
     # No early stop: the run is short, and stopping at a high learning rate (the decay is
     # scheduled over ``steps``) would leave the class boundaries unsettled.
@@ -247,7 +252,11 @@ class OnlineSinrMapper:
     found each report. Once a change is declared (its start estimated by the detector):
     1. from ``retrain.estimate_from`` post-change measurements on, the jammer is estimated
        from them (position, power, uncertainty; ``jammer_estimation``); an estimate that
-       does not converge is never published and is tried again with more data;
+       does not converge is never published and is tried again with more data. Meanwhile,
+       if the uploads show a jammer that they cannot place yet, a provisional map is fitted
+       and published (no estimate with it): the no-jammer map corrected by every place and
+       power the jammer may have, each in proportion to its probability
+       (``jammer_hypotheses``), changed only where the survey map's level became improbable;
     2. the first converged estimate corrects the no-jammer map (``base_network``, learned
        from a survey) into a prior over the whole area; the DNN is fitted to the prior plus
        every post-change upload and published at once, with the estimate;
@@ -401,7 +410,8 @@ class OnlineSinrMapper:
             if job == "estimate":
                 self._try_estimate(change, data)
             elif job == "fit":
-                self._fit(change, data, change.estimate)
+                self._fit(change, data, None if change.estimate is None
+                          else [(change.estimate, 1.0)])
             else:  # "settle": the map stands, the detector watches it
                 self._settle(change)
         except Exception as exc:  # a failed adaptation must not leave the mapper stuck
@@ -416,42 +426,66 @@ class OnlineSinrMapper:
     def _try_estimate(self, change: _Change, data: MeasurementBatch) -> None:
         # The survey map's levels carry the world's shadowing, which the ideal model lacks:
         # without them a jammer cannot be told from a shadow (see jammer_estimation).
-        estimate = estimate_jammer(
-            self.scenario, positions_from_features(self.scenario, data.features), data.levels,
-            no_jammer_levels=predict_levels(self._base, data.features))
+        xy = positions_from_features(self.scenario, data.features)
+        no_jammer_levels = predict_levels(self._base, data.features)
+        estimate = estimate_jammer(self.scenario, xy, data.levels,
+                                   no_jammer_levels=no_jammer_levels)
         change.tried_at = len(data)
         if estimate is None and change.estimate is not None:
             estimate = change.estimate  # refining: keep the last estimate that converged
-        if estimate is None:
-            if not change.failure_logged:
-                change.failure_logged = True
-                self.events.append({"type": "estimate_not_converged", "t": self.clock(),
-                                    "measurements": len(data)})
+        if estimate is not None:
+            change.estimate = estimate
+            self._fit(change, data, [(estimate, 1.0)])
             return
-        change.estimate = estimate
-        self._fit(change, data, estimate)
+        if not change.failure_logged:
+            change.failure_logged = True
+            self.events.append({"type": "estimate_not_converged", "t": self.clock(),
+                                "measurements": len(data)})
+        # A jammer the uploads show but cannot place yet: a provisional map, corrected by every
+        # place it may be in proportion to its probability, until an estimate converges.
+        hypotheses = jammer_hypotheses(self.scenario, xy, data.levels,
+                                       no_jammer_levels=no_jammer_levels)
+        if hypotheses is not None:
+            self._fit(change, data, list(zip(hypotheses.estimates, hypotheses.weights.tolist(),
+                                             strict=True)))
 
     def _fit(self, change: _Change, data: MeasurementBatch,
-             estimate: JammerEstimate | None) -> None:
-        """Fit the DNN to the post-change uploads (plus the estimate's prior) and publish."""
+             jammers: list[tuple[JammerEstimate, float]] | None = None) -> None:
+        """Fit the DNN to the post-change uploads, plus the prior of the no-jammer map
+        corrected by ``jammers`` (estimates and their weights: one converged estimate, or a
+        provisional map's hypotheses), and publish."""
         config = self.retrain
         features, levels = data.features, data.levels
         start_from, sigma_db = self._network, 0.0
-        if estimate is not None:
+        if jammers:
             prior_xy = self._prior_positions()
             prior_features = scenario_features(self.scenario, prior_xy)
             sigma_db = self._shadowing_sigma(prior_xy)
-            prior_levels = corrected_levels(self.scenario, self._base_levels, estimate,
-                                            prior_xy, shadowing_sigma_db=sigma_db)
+            base = self._base_levels(prior_xy)
+            probabilities = sum(
+                weight * corrected_level_probabilities(self.scenario, lambda _: base, jammer,
+                                                       prior_xy, shadowing_sigma_db=sigma_db)
+                for jammer, weight in jammers)
+            prior_levels = probabilities.argmax(axis=-1)
+            if len(jammers) > 1:
+                # A provisional map departs from the survey map only where the hypotheses
+                # together make the survey map's level improbable, not wherever one of
+                # three levels edges out the others.
+                kept = np.take_along_axis(probabilities, base[:, None], axis=-1)[:, 0] >= 0.5
+                prior_levels = np.where(kept, base, prior_levels)
             features = np.concatenate([features, prior_features])
             levels = np.concatenate([levels, prior_levels])
             start_from = self._base
+        # The estimate behind the map, when one converged; a provisional map has none.
+        estimate = jammers[0][0] if jammers is not None and len(jammers) == 1 else None
+        provisional = jammers is not None and estimate is None
         # Imported here, on the first retraining: torch takes seconds to load, and the cloud
         # serves weights from its start (the cloud process loads it meanwhile).
         from cloud_service.sinr_training import train_sinr_map
 
         result = train_sinr_map(
-            features, levels, self.level_count, network=start_from, steps=config.steps,
+            features, levels, self.level_count, network=start_from,
+            steps=config.provisional_steps if provisional else config.steps,
             max_seconds=config.max_seconds, target_accuracy=config.target_accuracy,
             holdout=config.holdout, seed=self._seed + self._version + 1)
         change.fitted_at = len(data)
@@ -463,16 +497,18 @@ class OnlineSinrMapper:
             self.estimate, self._estimate_sigma_db = estimate, sigma_db
             published = PublishedWeights(weights, sha256(weights), self._version,
                                          result.accuracy, estimate,
-                                         None if estimate is None else change.start)
+                                         None if estimate is None else change.start,
+                                         provisional)
             if estimate is not None:
                 self.events.append({"type": "jammer_estimated", "t": self.clock(),
                                     "map_version": self._version, **estimate._asdict()})
             self.events.append({"type": "sinr_weights_published", "t": self.clock(),
                                 "version": self._version, "accuracy": result.accuracy,
-                                "samples": len(data), "train_seconds": result.seconds})
+                                "samples": len(data), "train_seconds": result.seconds,
+                                "provisional": provisional})
         if self.publish is not None:
             self.publish(published)
-        if estimate is None:  # the paper's path: one retraining per change
+        if jammers is None:  # the paper's path: one retraining per change
             self._settle(change)
 
     def _settle(self, change: _Change) -> None:

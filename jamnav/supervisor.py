@@ -751,7 +751,8 @@ def describe_event(event: dict[str, Any]) -> str | None:
         return f"map v{estimate.map_version}, jammer at {describe_estimate(estimate)}"
     if kind == "sinr_weights_published":
         accuracy = event.get("accuracy")
-        return f"SINR map v{event['version']} published" + (
+        what = "provisional SINR map" if event.get("provisional") else "SINR map"
+        return f"{what} v{event['version']} published" + (
             "" if accuracy is None else f" (held-out accuracy {accuracy:.1%})")
     if kind == "weights_refused":
         version = event["version"] if event.get("version") is not None else "?"
@@ -763,29 +764,37 @@ def describe_event(event: dict[str, Any]) -> str | None:
 
 
 def map_history(events: list[dict[str, Any]]) -> list[str]:
-    """The jammer's changes and the cloud's answers, one line each; a run of refinements
-    (new estimate and map, again and again) shows as its first and last line."""
+    """The jammer's changes and the cloud's answers, one line each; a run of refinements (new
+    estimate and map, again and again) or of provisional maps shows as its first and last
+    line."""
     lines: list[str] = []
-    refinements: list[str] = []
+    run: list[str] = []
+    run_kind = ""
 
     def close_run() -> None:
-        if len(refinements) > 2:
-            lines.append(f"  ... {len(refinements) - 2} refinements ...")
-        if len(refinements) > 1:
-            lines.append(refinements[-1])
-        refinements.clear()
+        if len(run) > 2:
+            lines.append(f"  ... {len(run) - 2} {run_kind} ...")
+        if len(run) > 1:
+            lines.append(run[-1])
+        run.clear()
 
     for event in events:
         kind = event["type"]
-        if kind == "jammer_estimated":
+        provisional = kind == "sinr_weights_published" and event.get("provisional", False)
+        if kind == "jammer_estimated" or provisional:
+            what = "provisional maps" if provisional else "refinements"
+            if what != run_kind:
+                close_run()
+                run_kind = what
             line = describe_event(event)
-            if not refinements:
+            if not run:
                 lines.append(line)
-            refinements.append(line)
+            run.append(line)
         elif kind in ("jammer_changed", "change_detected"):
             close_run()
             lines.append(describe_event(event))
-        elif kind == "sinr_weights_published" and not refinements:
+        elif kind == "sinr_weights_published" and not (run and run_kind == "refinements"):
+            close_run()
             lines.append(describe_event(event))
     close_run()
     return lines

@@ -368,6 +368,8 @@ class SinrWeightsPublished(_Event):
     accuracy: Accuracy | None
     sha256: Digest
     path: str = Field(max_length=4096)  # the safetensors file of this version (cloud's disk)
+    # Corrected by where the jammer may be while its estimate has not converged yet.
+    provisional: bool = False
 
 
 class JammerEstimated(_Event):

@@ -184,3 +184,12 @@ def test_the_report_shows_a_run_of_refinements_as_its_first_and_last_map():
     # A map published without an estimate (the DNN alone) is listed as such.
     assert map_history([{"type": "sinr_weights_published", "version": 7, "accuracy": None}]
                        ) == ["SINR map v7 published"]
+    # Provisional maps while the estimate converges: a run of their own, before the first map
+    # an estimate stands behind.
+    provisional = [{"type": "sinr_weights_published", "version": v, "accuracy": None,
+                    "provisional": True} for v in (1, 2, 3, 4)]
+    lines = map_history([*provisional, estimated(5, 20.0),
+                         {"type": "sinr_weights_published", "version": 5, "accuracy": 0.9}])
+    assert lines == ["provisional SINR map v1 published", "  ... 2 provisional maps ...",
+                     "provisional SINR map v4 published", lines[3]]
+    assert lines[3].startswith("map v5, jammer at")

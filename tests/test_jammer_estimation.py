@@ -17,6 +17,7 @@ from cloud_service.jammer_estimation import (
     corrected_levels,
     estimate_jammer,
     fit_shadowing_sigma,
+    jammer_hypotheses,
     positions_from_features,
 )
 from shared.measurements import SpotFilter, scenario_features
@@ -290,3 +291,24 @@ def test_without_a_jammer_the_no_jammer_map_stands(scenario):
     corrected = corrected_levels(scenario, lambda xy: RadioModel(scenario).evaluate(xy).level,
                                  absent, points)
     np.testing.assert_array_equal(corrected, base)
+
+
+def test_hypotheses_of_a_provisional_map_surround_the_jammer_at_expected_powers():
+    """Idealized world, 300 uniform reports: a jammer of Table I shows, and the hypotheses
+    (weights summing to 1, powers within the training range) hold it within their spread;
+    with no jammer there are none."""
+    scenario = load_scenario("icc2021")
+    rng = np.random.default_rng(3)
+    xy = uniform_points(scenario, rng, 300)
+    setting = TABLE_I_JAMMERS[0]
+    jammer = JammerParams(setting.x, setting.y, setting.power_w, scenario.jammer.height_m)
+    levels, no_jammer = reports(scenario, jammer, xy, rng)
+    found = jammer_hypotheses(scenario, xy, levels, no_jammer_levels=no_jammer)
+    assert found is not None and found.weights.sum() == pytest.approx(1.0)
+    low, high = scenario.training.jammer_power_range_w
+    places = np.array([(e.x, e.y) for e in found.estimates])
+    assert all(low * 0.999 <= e.power_w <= high * 1.001 for e in found.estimates)
+    centre = found.weights @ places
+    assert np.hypot(*(centre - (setting.x, setting.y))) <= 10.0
+    quiet, no_jammer = reports(scenario, None, xy, rng)
+    assert jammer_hypotheses(scenario, xy, quiet, no_jammer_levels=no_jammer) is None

@@ -34,6 +34,7 @@ from shared.measurements import (
 )
 from shared.networks import from_bytes
 from shared.paper import TABLE_I_JAMMERS
+from shared.radio import RadioModel
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -253,11 +254,14 @@ def test_background_adaptation_publishes_without_blocking(mapping_scenario, no_j
     mapper, now = _online(mapping_scenario, network, accuracy, publish=published.append)
     fleet = Fleet(mapping_scenario, 20, np.random.default_rng(2))
     _fly(mapper, fleet, mapping_scenario, None, 4, 0, now)
-    while not published and now[0] < 60:
+    while not any(w.estimate is not None for w in published) and now[0] < 60:
         _fly(mapper, fleet, mapping_scenario, TABLE_I_JAMMERS[1], 1, int(now[0]) + 1, now)
         mapper.wait(timeout=30)
-    weights = published[0]
-    assert weights.version == 1 and weights.estimate is not None and weights.estimate.present
+    # Provisional maps (no estimate) may come before the first estimate.
+    weights = next(w for w in published if w.estimate is not None)
+    assert all(w.estimate is None for w in published[: published.index(weights)])
+    assert [w.version for w in published] == list(range(1, len(published) + 1))
+    assert weights.estimate.present
     assert mapper.wait(timeout=30)
     restored = from_bytes(weights.data, weights.sha256, mapper.current_network().architecture())
     grid = np.random.default_rng(0).uniform(-50, 50, (500, 2))
@@ -275,10 +279,12 @@ def test_background_adaptation_publishes_without_blocking(mapping_scenario, no_j
 
 def test_an_estimate_that_does_not_converge_is_never_published(mapping_scenario,
                                                                no_jammer_map, monkeypatch):
-    """The DNN path goes on alone, and the failure is logged once."""
+    """The DNN path goes on alone, and the failure is logged once (here the uploads cannot
+    even place a provisional map's hypotheses)."""
     import cloud_service.sinr_mapping as mapping
 
     monkeypatch.setattr(mapping, "estimate_jammer", lambda *args, **kwargs: None)
+    monkeypatch.setattr(mapping, "jammer_hypotheses", lambda *args, **kwargs: None)
     network, accuracy = no_jammer_map
     published: list[PublishedWeights] = []
     mapper, now = _online(mapping_scenario, network, accuracy, publish=published.append,
@@ -293,6 +299,44 @@ def test_an_estimate_that_does_not_converge_is_never_published(mapping_scenario,
     assert types.count("estimate_not_converged") == types.count("change_detected")  # once each
     assert all(w.estimate is None for w in published) and published[0].version == 1
     assert mapper.events[2]["samples"] >= 3000
+
+
+def test_provisional_maps_go_out_until_an_estimate_converges(mapping_scenario, no_jammer_map,
+                                                             monkeypatch):
+    """While no estimate converges, each try that shows a jammer publishes a provisional map
+    (no estimate with it, the detector still off); the jammed zone darkens it and the area
+    far from the jammer keeps its survey level. The DNN alone ends it at min_samples."""
+    import cloud_service.sinr_mapping as mapping
+
+    monkeypatch.setattr(mapping, "estimate_jammer", lambda *args, **kwargs: None)
+    network, accuracy = no_jammer_map
+    published: list[PublishedWeights] = []
+    mapper, now = _online(mapping_scenario, network, accuracy, publish=published.append,
+                          background=False, retrain=RetrainConfig(max_seconds=None,
+                                                                  min_samples=1500))
+    fleet = Fleet(mapping_scenario, 20, np.random.default_rng(4))
+    _fly(mapper, fleet, mapping_scenario, None, 5, 0, now)
+    jammer = TABLE_I_JAMMERS[0]
+    while len(published) < 2 and now[0] < 60:
+        _fly(mapper, fleet, mapping_scenario, jammer, 1, int(now[0]) + 1, now)
+    assert mapper.state()["phase"] == "estimating"
+    _fly(mapper, fleet, mapping_scenario, jammer, 20, int(now[0]) + 1, now)
+    assert mapper.state()["phase"] == "watching"
+    first = from_bytes(published[0].data, published[0].sha256,
+                       mapper.current_network().architecture())
+    provisional = [e for e in mapper.events if e["type"] == "sinr_weights_published"]
+    assert len(provisional) >= 2 and all(w.estimate is None for w in published)
+    assert [e["provisional"] for e in provisional] == [True] * (len(provisional) - 1) + [False]
+    assert provisional[-1]["samples"] >= 1500
+    radio = RadioModel(mapping_scenario)
+    xy = np.random.default_rng(5).uniform(-50, 50, (4000, 2))
+    truth = radio.evaluate(xy, jammer_params(mapping_scenario, jammer)).level
+    near = np.hypot(*(xy - (jammer.x, jammer.y)).T) < 10.0
+    survey = predict_levels(network, scenario_features(mapping_scenario, xy))
+    levels = predict_levels(first, scenario_features(mapping_scenario, xy))
+    # Closer to the truth where the jammer is than the survey map, and as right far from it.
+    assert (levels[near] == truth[near]).mean() > (survey[near] == truth[near]).mean()
+    assert (levels[~near] == truth[~near]).mean() >= (survey[~near] == truth[~near]).mean() - 0.02
 
 
 # -- command line -----------------------------------------------------------------------------
