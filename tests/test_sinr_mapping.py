@@ -277,21 +277,31 @@ def test_background_adaptation_publishes_without_blocking(mapping_scenario, no_j
     mapper.close()
 
 
+def _never_converging(monkeypatch, scenario, no_jammer_map, min_samples: int):
+    """A mapper whose jammer estimate never converges, after 5 s of 20 UAVs with no jammer:
+    (mapper, clock, fleet, what it publishes)."""
+    import cloud_service.sinr_mapping as mapping
+
+    monkeypatch.setattr(mapping, "estimate_jammer", lambda *args, **kwargs: None)
+    network, accuracy = no_jammer_map
+    published: list[PublishedWeights] = []
+    mapper, now = _online(scenario, network, accuracy, publish=published.append,
+                          background=False, retrain=RetrainConfig(max_seconds=None,
+                                                                  min_samples=min_samples))
+    fleet = Fleet(scenario, 20, np.random.default_rng(4))
+    _fly(mapper, fleet, scenario, None, 5, 0, now)
+    return mapper, now, fleet, published
+
+
 def test_an_estimate_that_does_not_converge_is_never_published(mapping_scenario,
                                                                no_jammer_map, monkeypatch):
     """The DNN path goes on alone, and the failure is logged once (here the uploads cannot
     even place a provisional map's hypotheses)."""
     import cloud_service.sinr_mapping as mapping
 
-    monkeypatch.setattr(mapping, "estimate_jammer", lambda *args, **kwargs: None)
     monkeypatch.setattr(mapping, "jammer_hypotheses", lambda *args, **kwargs: None)
-    network, accuracy = no_jammer_map
-    published: list[PublishedWeights] = []
-    mapper, now = _online(mapping_scenario, network, accuracy, publish=published.append,
-                          background=False, retrain=RetrainConfig(max_seconds=None,
-                                                                  min_samples=3000))
-    fleet = Fleet(mapping_scenario, 20, np.random.default_rng(4))
-    _fly(mapper, fleet, mapping_scenario, None, 5, 0, now)
+    mapper, now, fleet, published = _never_converging(monkeypatch, mapping_scenario,
+                                                      no_jammer_map, 3000)
     _fly(mapper, fleet, mapping_scenario, TABLE_I_JAMMERS[0], 40, 5, now)
     types = _types(mapper)
     assert "jammer_estimated" not in types and types[:3] == [
@@ -306,16 +316,9 @@ def test_provisional_maps_go_out_until_an_estimate_converges(mapping_scenario, n
     """While no estimate converges, each try that shows a jammer publishes a provisional map
     (no estimate with it, the detector still off); the jammed zone darkens it and the area
     far from the jammer keeps its survey level. The DNN alone ends it at min_samples."""
-    import cloud_service.sinr_mapping as mapping
-
-    monkeypatch.setattr(mapping, "estimate_jammer", lambda *args, **kwargs: None)
-    network, accuracy = no_jammer_map
-    published: list[PublishedWeights] = []
-    mapper, now = _online(mapping_scenario, network, accuracy, publish=published.append,
-                          background=False, retrain=RetrainConfig(max_seconds=None,
-                                                                  min_samples=1500))
-    fleet = Fleet(mapping_scenario, 20, np.random.default_rng(4))
-    _fly(mapper, fleet, mapping_scenario, None, 5, 0, now)
+    mapper, now, fleet, published = _never_converging(monkeypatch, mapping_scenario,
+                                                      no_jammer_map, 1500)
+    network = no_jammer_map[0]
     jammer = TABLE_I_JAMMERS[0]
     while len(published) < 2 and now[0] < 60:
         _fly(mapper, fleet, mapping_scenario, jammer, 1, int(now[0]) + 1, now)
