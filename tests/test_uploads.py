@@ -8,6 +8,7 @@ import tempfile
 from pathlib import Path
 from unittest import mock
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -201,3 +202,12 @@ def test_an_outbox_directory_that_cannot_be_made_is_a_one_line_error(tmp_path, c
     assert agent_main(["--uav", "0", "--outbox-dir", str(blocker / "outbox")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("agent: error: --outbox-dir") and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("uav", ["-1", "1024"])
+def test_a_uav_outside_the_fleet_cap_is_a_one_line_error(uav, capsys):
+    """Any UAV of a world up to the 1,024 cap may be asked for (--uav 70 flies a 100-UAV
+    world); beyond it, one line."""
+    assert agent_main(["--uav", uav]) == 2
+    err = capsys.readouterr().err
+    assert err == "agent: error: --uav must be between 0 and 1023\n"

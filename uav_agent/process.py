@@ -46,7 +46,7 @@ from shared.policy import (
     RasterMap,
     sinr_network_raster,
 )
-from shared.scenario import Scenario, ScenarioError, load_scenario
+from shared.scenario import MAX_UAVS, Scenario, ScenarioError, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
 from uav_agent.uploads import (
     DEFAULT_BATCH,
@@ -304,8 +304,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         scenario = load_scenario(args.scenario)
-        if args.uav is not None and not 0 <= args.uav < 64:
-            raise ValueError("--uav must be between 0 and 63")
+        if args.uav is not None and not 0 <= args.uav < MAX_UAVS:
+            raise ValueError(f"--uav must be between 0 and {MAX_UAVS - 1}")
         if not 1 <= args.upload_every <= MAX_UPLOAD:
             raise ValueError(f"--upload-every must be between 1 and {MAX_UPLOAD}")
         if args.outbox < 1:
