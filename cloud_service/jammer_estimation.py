@@ -366,6 +366,12 @@ def estimate_jammer(
                               min_measurements)
     if searched is None:
         return None
+    return _decide(scenario, searched, presence_llr, exclusion_llr, max_position_sd_m)
+
+
+def _decide(scenario: Scenario, searched: _Searched, presence_llr: float, exclusion_llr: float,
+            max_position_sd_m: float) -> JammerEstimate | None:
+    """``estimate_jammer``'s decision on a coarse search."""
     evidence, search, llr = searched
     if llr.max() < presence_llr:
         excluded = llr[search.in_area, search.middle_of_range] < -exclusion_llr
@@ -407,6 +413,32 @@ def jammer_hypotheses(
                               OUTLIER_SHARE, INDEPENDENT_SPACING_M, MIN_MEASUREMENTS)
     if searched is None:
         return None
+    return _hypotheses(scenario, searched, mass, most, presence_llr)
+
+
+class JammerFit(NamedTuple):
+    estimate: JammerEstimate | None  # as ``estimate_jammer``
+    hypotheses: JammerHypotheses | None  # as ``jammer_hypotheses``, when no estimate converged
+
+
+def locate_jammer(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, *,
+                  no_jammer_levels: np.ndarray | None = None) -> JammerFit:
+    """``estimate_jammer`` and, if it gives no estimate, ``jammer_hypotheses``, both with
+    their defaults, from one coarse search (most of the cost of each)."""
+    searched = _coarse_search(scenario, xy, levels, no_jammer_levels, None, REPORT_SIGMA_DB,
+                              OUTLIER_SHARE, INDEPENDENT_SPACING_M, MIN_MEASUREMENTS)
+    if searched is None:
+        return JammerFit(None, None)
+    estimate = _decide(scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M)
+    if estimate is not None:
+        return JammerFit(estimate, None)
+    return JammerFit(None, _hypotheses(scenario, searched, HYPOTHESES_MASS, MOST_HYPOTHESES,
+                                       HYPOTHESES_LLR))
+
+
+def _hypotheses(scenario: Scenario, searched: _Searched, mass: float, most: int,
+                presence_llr: float) -> JammerHypotheses | None:
+    """``jammer_hypotheses`` on a coarse search."""
     evidence, search, llr = searched
     # Early on, a far stronger jammer farther off explains the few contradicting reports as
     # well as the right one, and it would darken the whole map: a provisional map weighs only
@@ -430,10 +462,16 @@ def jammer_hypotheses(
     return JammerHypotheses(estimates, weight[kept] / weight[kept].sum())
 
 
+class _Searched(NamedTuple):
+    evidence: _Evidence
+    search: _CoarseSearch
+    llr: np.ndarray  # (positions, powers): weighted LLR of each hypothesis against none
+
+
 def _coarse_search(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
                    no_jammer_levels: np.ndarray | None, shadowing_sigma_db: float | None,
                    report_sigma_db: float, outlier_share: float, independent_spacing_m: float,
-                   min_measurements: int):
+                   min_measurements: int) -> _Searched | None:
     """The evidence of the located rows, the coarse search and its LLRs (positions x
     powers); None with fewer than ``min_measurements`` located rows."""
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
@@ -451,7 +489,8 @@ def _coarse_search(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
         independence_weights(xy, independent_spacing_m),
         sinr_beliefs(radio, xy, no_jammer_levels, shadowing_sigma_db), report_sigma_db,
         outlier_share, np.ptp(search.powers_dbw))
-    return evidence, search, evidence.log_likelihood_ratios(search.positions, search.powers_dbw)
+    return _Searched(evidence, search,
+                     evidence.log_likelihood_ratios(search.positions, search.powers_dbw))
 
 
 def _refine(evidence: _Evidence, search: _CoarseSearch, llr: np.ndarray):

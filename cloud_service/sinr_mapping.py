@@ -34,9 +34,8 @@ from cloud_service.jammer_estimation import (
     REPORT_SIGMA_DB,
     JammerEstimate,
     corrected_level_probabilities,
-    estimate_jammer,
     fit_shadowing_sigma,
-    jammer_hypotheses,
+    locate_jammer,
     positions_from_features,
 )
 from cloud_service.sinr_memory import SinrMemory, Uploads
@@ -426,10 +425,11 @@ class OnlineSinrMapper:
     def _try_estimate(self, change: _Change, data: MeasurementBatch) -> None:
         # The survey map's levels carry the world's shadowing, which the ideal model lacks:
         # without them a jammer cannot be told from a shadow (see jammer_estimation).
-        xy = positions_from_features(self.scenario, data.features)
-        no_jammer_levels = predict_levels(self._base, data.features)
-        estimate = estimate_jammer(self.scenario, xy, data.levels,
-                                   no_jammer_levels=no_jammer_levels)
+        located = locate_jammer(self.scenario,
+                                positions_from_features(self.scenario, data.features),
+                                data.levels, no_jammer_levels=predict_levels(self._base,
+                                                                             data.features))
+        estimate = located.estimate
         change.tried_at = len(data)
         if estimate is None and change.estimate is not None:
             estimate = change.estimate  # refining: keep the last estimate that converged
@@ -443,8 +443,7 @@ class OnlineSinrMapper:
                                 "measurements": len(data)})
         # A jammer the uploads show but cannot place yet: a provisional map, corrected by every
         # place it may be in proportion to its probability, until an estimate converges.
-        hypotheses = jammer_hypotheses(self.scenario, xy, data.levels,
-                                       no_jammer_levels=no_jammer_levels)
+        hypotheses = located.hypotheses
         if hypotheses is not None:
             self._fit(change, data, list(zip(hypotheses.estimates, hypotheses.weights.tolist(),
                                              strict=True)))

@@ -18,6 +18,7 @@ from cloud_service.jammer_estimation import (
     estimate_jammer,
     fit_shadowing_sigma,
     jammer_hypotheses,
+    locate_jammer,
     positions_from_features,
 )
 from shared.measurements import SpotFilter, scenario_features
@@ -312,3 +313,28 @@ def test_hypotheses_of_a_provisional_map_surround_the_jammer_at_expected_powers(
     assert np.hypot(*(centre - (setting.x, setting.y))) <= 10.0
     quiet, no_jammer = reports(scenario, None, xy, rng)
     assert jammer_hypotheses(scenario, xy, quiet, no_jammer_levels=no_jammer) is None
+
+
+def test_locating_once_gives_what_the_estimate_and_the_hypotheses_give_apart():
+    """``locate_jammer`` shares one coarse search between the two: the same estimate, and the
+    same hypotheses when no estimate converges (few reports) and none when one does."""
+    scenario = load_scenario("icc2021")
+    rng = np.random.default_rng(4)
+    setting = TABLE_I_JAMMERS[1]
+    jammer = JammerParams(setting.x, setting.y, setting.power_w, scenario.jammer.height_m)
+    xy = uniform_points(scenario, rng, 1500)
+    levels, no_jammer = reports(scenario, jammer, xy, rng)
+    outcomes = set()
+    for n in (60, 1500):
+        fit = locate_jammer(scenario, xy[:n], levels[:n], no_jammer_levels=no_jammer[:n])
+        apart = estimate_jammer(scenario, xy[:n], levels[:n], no_jammer_levels=no_jammer[:n])
+        assert fit.estimate == apart
+        hypotheses = jammer_hypotheses(scenario, xy[:n], levels[:n],
+                                       no_jammer_levels=no_jammer[:n])
+        if apart is None:
+            assert fit.hypotheses.estimates == hypotheses.estimates
+            np.testing.assert_array_equal(fit.hypotheses.weights, hypotheses.weights)
+        else:
+            assert fit.hypotheses is None
+        outcomes.add(apart is None)
+    assert outcomes == {True, False}

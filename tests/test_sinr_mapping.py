@@ -11,6 +11,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from cloud_service.jammer_estimation import JammerEstimate as EstimatedJammer
+from cloud_service.jammer_estimation import JammerFit, jammer_hypotheses
 from cloud_service.online_map_sim import Fleet, jammer_params
 from cloud_service.process import estimate_of, map_card
 from cloud_service.sinr_mapping import (
@@ -277,12 +278,15 @@ def test_background_adaptation_publishes_without_blocking(mapping_scenario, no_j
     mapper.close()
 
 
-def _never_converging(monkeypatch, scenario, no_jammer_map, min_samples: int):
-    """A mapper whose jammer estimate never converges, after 5 s of 20 UAVs with no jammer:
+def _never_converging(monkeypatch, scenario, no_jammer_map, min_samples: int,
+                      hypotheses: bool = True):
+    """A mapper whose jammer estimate never converges (and, without ``hypotheses``, whose
+    uploads never place a provisional map either), after 5 s of 20 UAVs with no jammer:
     (mapper, clock, fleet, what it publishes)."""
     import cloud_service.sinr_mapping as mapping
 
-    monkeypatch.setattr(mapping, "estimate_jammer", lambda *args, **kwargs: None)
+    monkeypatch.setattr(mapping, "locate_jammer", lambda *args, **kwargs: JammerFit(
+        None, jammer_hypotheses(*args, **kwargs) if hypotheses else None))
     network, accuracy = no_jammer_map
     published: list[PublishedWeights] = []
     mapper, now = _online(scenario, network, accuracy, publish=published.append,
@@ -297,11 +301,8 @@ def test_an_estimate_that_does_not_converge_is_never_published(mapping_scenario,
                                                                no_jammer_map, monkeypatch):
     """The DNN path goes on alone, and the failure is logged once (here the uploads cannot
     even place a provisional map's hypotheses)."""
-    import cloud_service.sinr_mapping as mapping
-
-    monkeypatch.setattr(mapping, "jammer_hypotheses", lambda *args, **kwargs: None)
     mapper, now, fleet, published = _never_converging(monkeypatch, mapping_scenario,
-                                                      no_jammer_map, 3000)
+                                                      no_jammer_map, 3000, hypotheses=False)
     _fly(mapper, fleet, mapping_scenario, TABLE_I_JAMMERS[0], 40, 5, now)
     types = _types(mapper)
     assert "jammer_estimated" not in types and types[:3] == [
