@@ -325,7 +325,7 @@ def mapper_details(state: dict) -> dict:
     """The mapper's state as status scalars."""
     estimate = state["estimate"]
     return {"map_phase": state["phase"], "recent_accuracy": state["recent_accuracy"],
-            "since_change": state["since_change"],
+            "since_change": state["since_change"], "map_provisional": state["provisional"],
             "estimate": None if estimate is None else describe_estimate(
                 estimate_message(estimate, state["map_version"], 0.0))}
 

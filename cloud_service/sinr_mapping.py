@@ -306,6 +306,7 @@ class OnlineSinrMapper:
         self._network = network
         self._base = base_network or network
         self._accuracy = accuracy
+        self._provisional = False  # whether the map in service is a provisional one
         self._version = version
         self._seed = seed
         self._lock = threading.Lock()
@@ -348,7 +349,7 @@ class OnlineSinrMapper:
                     "recent_uploads": len(self._recent),
                     "phase": "watching" if change is None else change.phase,
                     "since_change": None if change is None else change.measurements,
-                    "estimate": self.estimate}
+                    "provisional": self._provisional, "estimate": self.estimate}
 
     def ingest(self, uploads: Uploads) -> IngestReport:
         stored, duplicates = self.memory.store(uploads)
@@ -493,6 +494,7 @@ class OnlineSinrMapper:
             self._network = result.network
             self._version += 1
             self._accuracy = result.accuracy
+            self._provisional = provisional
             self.estimate, self._estimate_sigma_db = estimate, sigma_db
             published = PublishedWeights(weights, sha256(weights), self._version,
                                          result.accuracy, estimate,

@@ -456,6 +456,7 @@ def mapper_summary(cloud: ProcessStatus | None) -> str:
     d = cloud.details
     recent = d.get("recent_accuracy")
     text = f"map v{cloud.sinr_version}" + (
+        " (provisional)" if d.get("map_provisional") else "") + (
         f" {recent:.0%} on recent" if isinstance(recent, float) else "")
     if d["map_phase"] != "watching":
         text += f", {d['map_phase']} ({d.get('since_change')} since change)"

@@ -193,3 +193,17 @@ def test_the_report_shows_a_run_of_refinements_as_its_first_and_last_map():
     assert lines == ["provisional SINR map v1 published", "  ... 2 provisional maps ...",
                      "provisional SINR map v4 published", lines[3]]
     assert lines[3].startswith("map v5, jammer at")
+
+
+def test_the_mapper_summary_says_when_the_map_in_service_is_provisional():
+    from shared.messages import ProcessStatus, mapper_summary
+
+    def cloud(**details) -> ProcessStatus:
+        return ProcessStatus(role="cloud", ident="0", pid=1, t=0.0, sinr_version=5,
+                             details={"recent_accuracy": 0.93, **details})
+
+    assert mapper_summary(cloud(map_phase="estimating", since_change=120,
+                                map_provisional=True)) == (
+        "map v5 (provisional) 93% on recent, estimating (120 since change)")
+    assert mapper_summary(cloud(map_phase="watching", since_change=None,
+                                map_provisional=False)) == "map v5 93% on recent"

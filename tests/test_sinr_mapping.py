@@ -323,9 +323,9 @@ def test_provisional_maps_go_out_until_an_estimate_converges(mapping_scenario, n
     jammer = TABLE_I_JAMMERS[0]
     while len(published) < 2 and now[0] < 60:
         _fly(mapper, fleet, mapping_scenario, jammer, 1, int(now[0]) + 1, now)
-    assert mapper.state()["phase"] == "estimating"
+    assert mapper.state()["phase"] == "estimating" and mapper.state()["provisional"]
     _fly(mapper, fleet, mapping_scenario, jammer, 20, int(now[0]) + 1, now)
-    assert mapper.state()["phase"] == "watching"
+    assert mapper.state()["phase"] == "watching" and not mapper.state()["provisional"]
     first = from_bytes(published[0].data, published[0].sha256,
                        mapper.current_network().architecture())
     provisional = [e for e in mapper.events if e["type"] == "sinr_weights_published"]
