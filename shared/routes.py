@@ -13,8 +13,8 @@ d[v] = min(d[v], d[u] + w(u, v)) over the same float64 edge weights, whatever th
 relaxations (test). scipy's Dijkstra, in C, is fastest for the batches of destinations that
 training and the in-process flights ask for; but importing scipy's graph module costs a process
 about 31 MiB. An agent routes one UAV to one destination per map, so a single destination is
-swept in numpy instead (``_swept_fields``: 5 ms on icc2021's grid against Dijkstra's 0.6), and
-an agent never loads scipy.
+swept in numpy instead (``_swept_fields``: 2-2.5 ms on icc2021's grid against Dijkstra's
+0.6), and an agent never loads scipy.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from collections import OrderedDict
 from typing import NamedTuple
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 
 class _EdgeWeights(NamedTuple):
@@ -47,6 +48,24 @@ class _EdgeWeights(NamedTuple):
 
     def transposed(self) -> _EdgeWeights:
         return _EdgeWeights(self.right.T, self.down.T, self.down_right.T, self.down_left.T)
+
+    def improvable(self, field: np.ndarray) -> bool:
+        """Whether some edge still shortens ``field``: False only at the fixpoint."""
+        ends = ((field[:-1, :], field[1:, :], self.down), (field[:, :-1], field[:, 1:], self.right),
+                (field[:-1, :-1], field[1:, 1:], self.down_right),
+                (field[:-1, 1:], field[1:, :-1], self.down_left))
+        return any(bool((a + w < b).any() or (b + w < a).any()) for a, b, w in ends)
+
+    def from_previous_line(self) -> tuple[np.ndarray, np.ndarray]:
+        """Weights (lines - 1, columns, 3) of the edges into column c of a line from columns
+        c - 1, c, c + 1 of the line before it, sweeping first to last and last to first
+        (infinite where the column is off the grid), indexed by the lower line's edge row."""
+        beyond = np.full((self.down.shape[0], 1), np.inf)
+        forward = np.stack([np.hstack([beyond, self.down_right]), self.down,
+                            np.hstack([self.down_left, beyond])], axis=-1)
+        backward = np.stack([np.hstack([beyond, self.down_left]), self.down,
+                             np.hstack([self.down_right, beyond])], axis=-1)
+        return forward, backward
 
 
 class RouteGrid:
@@ -112,16 +131,18 @@ class RouteGrid:
 
     def _swept_fields(self, node: int) -> np.ndarray:
         """The field to one destination by Gauss-Seidel sweeps: rows down and up, then columns
-        right and left, each line relaxed from the one before it, until a round changes
-        nothing (3-5 rounds: one per bend of the routes, and one to confirm)."""
-        field = np.full((self.rows, self.cols), np.inf)
+        right and left, each line relaxed from the one before it, until no edge shortens it
+        (2-4 rounds: about one per bend of the routes)."""
+        # A border of infinity, so that every line reads three neighbours of each column.
+        padded = np.full((self.rows + 2, self.cols + 2), np.inf)
+        field = padded[1:-1, 1:-1]
         field.flat[node] = 0.0
-        by_rows, by_columns = self.weights, self.weights.transposed()
+        by_rows = self.weights.from_previous_line()
+        by_columns = self.weights.transposed().from_previous_line()
         while True:
-            before = field.copy()
-            _sweep_lines(field, by_rows)
-            _sweep_lines(field.T, by_columns)
-            if np.array_equal(before, field):
+            _sweep_lines(padded, *by_rows)
+            _sweep_lines(padded.T, *by_columns)
+            if not self.weights.improvable(field):
                 return field[None]
 
     def _free_slot(self) -> int:
@@ -160,26 +181,19 @@ class RouteGrid:
         return value + offset.reshape((-1,) + (1,) * (xy.ndim - 2))
 
 
-def _sweep_lines(field: np.ndarray, weights: _EdgeWeights) -> None:
-    """Relax every line of ``field`` (in place) from the line before it, first to last and back:
-    its straight edge and both diagonals. Columns are swept as the rows of the transpose."""
-    lines = field.shape[0]
-    candidate = np.empty(field.shape[1])
-    for line, previous in [(r, r - 1) for r in range(1, lines)] + [
-        (r, r + 1) for r in range(lines - 2, -1, -1)
-    ]:
-        edge = min(line, previous)
-        here, there = field[line], field[previous]
-        # here[c] is reached from there[c - 1] and there[c + 1]; which diagonal edge joins them
-        # depends on whether the previous line is above or below.
-        rising, falling = ((weights.down_right, weights.down_left) if previous < line
-                           else (weights.down_left, weights.down_right))
-        pairs = (
-            (here, there, weights.down[edge]),
-            (here[1:], there[:-1], rising[edge]),
-            (here[:-1], there[1:], falling[edge]),
-        )
-        for target, source, weight in pairs:
-            out = candidate[: len(target)]
-            np.add(source, weight, out=out)
-            np.minimum(target, out, out=target)
+def _sweep_lines(padded: np.ndarray, forward: np.ndarray, backward: np.ndarray) -> None:
+    """Relax every line of ``padded`` (in place; its border stays infinite) from the line
+    before it, first to last and back, by the weights of ``from_previous_line``. Columns are
+    swept as the rows of the transpose."""
+    lines = padded.shape[0] - 2
+    neighbours = sliding_window_view(padded, 3, axis=1)  # [line, c] = columns c - 1 .. c + 1
+    reached = np.empty(neighbours.shape[1:])
+    best = np.empty(neighbours.shape[1])
+    order = [(line, line - 1, forward[line - 2]) for line in range(2, lines + 1)] + [
+        (line, line + 1, backward[line - 1]) for line in range(lines - 1, 0, -1)]
+    for line, previous, weight in order:
+        np.add(neighbours[previous], weight, out=reached)
+        np.minimum(reached[:, 0], reached[:, 1], out=best)
+        np.minimum(best, reached[:, 2], out=best)
+        here = padded[line, 1:-1]
+        np.minimum(here, best, out=here)
