@@ -33,7 +33,9 @@ import numpy as np
 from cloud_service.jammer_estimation import (
     REPORT_SIGMA_DB,
     JammerEstimate,
+    JammerHypotheses,
     corrected_level_probabilities,
+    corrected_levels,
     fit_shadowing_sigma,
     locate_jammer,
     positions_from_features,
@@ -51,11 +53,6 @@ from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 
 TARGET_ACCURACY = 0.97  # the accuracy bar the online map is held to on fresh measurements
-# A provisional map keeps the survey map's level where the jammer's hypotheses leave it at
-# least this probable. bench_adaptation (icc2021, 20 changes), first provisional map's median
-# accuracy: 94.8 % at 0.5, 95.2 % at 0.3 (accuracy 30 s on: 96.6 % and 96.2 %); icc2021-shadowed
-# 79.3 % at both.
-SURVEY_LEVEL_KEPT = 0.5
 
 
 def simulated_measurements(
@@ -415,8 +412,7 @@ class OnlineSinrMapper:
             if job == "estimate":
                 self._try_estimate(change, data)
             elif job == "fit":
-                self._fit(change, data, None if change.estimate is None
-                          else [(change.estimate, 1.0)])
+                self._fit(change, data, change.estimate)
             else:  # "settle": the map stands, the detector watches it
                 self._settle(change)
         except Exception as exc:  # a failed adaptation must not leave the mapper stuck
@@ -441,7 +437,7 @@ class OnlineSinrMapper:
             estimate = change.estimate  # refining: keep the last estimate that converged
         if estimate is not None:
             change.estimate = estimate
-            self._fit(change, data, [(estimate, 1.0)])
+            self._fit(change, data, estimate)
             return
         if not change.failure_logged:
             change.failure_logged = True
@@ -449,42 +445,29 @@ class OnlineSinrMapper:
                                 "measurements": len(data)})
         # A jammer the uploads show but cannot place yet: a provisional map, corrected by every
         # place it may be in proportion to its probability, until an estimate converges.
-        hypotheses = located.hypotheses
-        if hypotheses is not None:
-            self._fit(change, data, list(zip(hypotheses.estimates, hypotheses.weights.tolist(),
-                                             strict=True)))
+        if located.hypotheses is not None:
+            self._fit(change, data, located.hypotheses)
 
     def _fit(self, change: _Change, data: MeasurementBatch,
-             jammers: list[tuple[JammerEstimate, float]] | None = None) -> None:
+             jammer: JammerEstimate | JammerHypotheses | None) -> None:
         """Fit the DNN to the post-change uploads, plus the prior of the no-jammer map
-        corrected by ``jammers`` (estimates and their weights: one converged estimate, or a
-        provisional map's hypotheses), and publish."""
+        corrected by ``jammer`` (a converged estimate, or a provisional map's hypotheses),
+        and publish."""
         config = self.retrain
         features, levels = data.features, data.levels
         start_from, sigma_db = self._network, 0.0
-        if jammers:
+        if jammer is not None:
             prior_xy = self._prior_positions()
             prior_features = scenario_features(self.scenario, prior_xy)
             sigma_db = self._shadowing_sigma(prior_xy)
-            base = self._base_levels(prior_xy)
-            probabilities = sum(
-                weight * corrected_level_probabilities(self.scenario, lambda _: base, jammer,
-                                                       prior_xy, shadowing_sigma_db=sigma_db)
-                for jammer, weight in jammers)
-            prior_levels = probabilities.argmax(axis=-1)
-            if len(jammers) > 1:
-                # A provisional map departs from the survey map only where the hypotheses
-                # together make the survey map's level improbable, not wherever one of
-                # three levels edges out the others.
-                kept = (np.take_along_axis(probabilities, base[:, None], axis=-1)[:, 0]
-                        >= SURVEY_LEVEL_KEPT)
-                prior_levels = np.where(kept, base, prior_levels)
+            prior_levels = corrected_levels(self.scenario, self._base_levels, jammer,
+                                            prior_xy, shadowing_sigma_db=sigma_db)
             features = np.concatenate([features, prior_features])
             levels = np.concatenate([levels, prior_levels])
             start_from = self._base
         # The estimate behind the map, when one converged; a provisional map has none.
-        estimate = jammers[0][0] if jammers is not None and len(jammers) == 1 else None
-        provisional = jammers is not None and estimate is None
+        provisional = isinstance(jammer, JammerHypotheses)
+        estimate = None if provisional else jammer
         # Imported here, on the first retraining: torch takes seconds to load, and the cloud
         # serves weights from its start (the cloud process loads it meanwhile).
         from cloud_service.sinr_training import train_sinr_map
@@ -515,7 +498,7 @@ class OnlineSinrMapper:
                                 "provisional": provisional})
         if self.publish is not None:
             self.publish(published)
-        if jammers is None:  # the paper's path: one retraining per change
+        if jammer is None:  # the paper's path: one retraining per change
             self._settle(change)
 
     def _settle(self, change: _Change) -> None:

@@ -77,6 +77,7 @@ class RouteGrid:
         self.x0, self.y0, self.cell = x0, y0, cell
         self.weights = _EdgeWeights.of(np.where(covered, 1.0, uncovered_cost), cell)
         self._graph = None  # scipy's sparse form of the weights, built on first batch
+        self._lines = None  # the weights as the sweeps read them, built on first sweep
         # Destination node -> its slot in ``store``, least recently used first. One array of
         # fields read by fancy indexing: stacking them per query would copy every field at
         # every step (43 MB a step with 256 UAVs on a 400 m map).
@@ -137,8 +138,10 @@ class RouteGrid:
         padded = np.full((self.rows + 2, self.cols + 2), np.inf)
         field = padded[1:-1, 1:-1]
         field.flat[node] = 0.0
-        by_rows = self.weights.from_previous_line()
-        by_columns = self.weights.transposed().from_previous_line()
+        if self._lines is None:
+            self._lines = (self.weights.from_previous_line(),
+                           self.weights.transposed().from_previous_line())
+        by_rows, by_columns = self._lines
         while True:
             _sweep_lines(padded, *by_rows)
             _sweep_lines(padded.T, *by_columns)

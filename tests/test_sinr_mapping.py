@@ -11,7 +11,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from cloud_service.jammer_estimation import JammerEstimate as EstimatedJammer
-from cloud_service.jammer_estimation import JammerFit, jammer_hypotheses
+from cloud_service.jammer_estimation import JammerFit, JammerHypotheses, jammer_hypotheses
 from cloud_service.online_map_sim import Fleet, jammer_params
 from cloud_service.process import estimate_of, map_card
 from cloud_service.sinr_mapping import (
@@ -341,6 +341,27 @@ def test_provisional_maps_go_out_until_an_estimate_converges(mapping_scenario, n
     # Closer to the truth where the jammer is than the survey map, and as right far from it.
     assert (levels[near] == truth[near]).mean() > (survey[near] == truth[near]).mean()
     assert (levels[~near] == truth[~near]).mean() >= (survey[~near] == truth[~near]).mean() - 0.02
+
+
+def test_a_single_hypothesis_still_makes_a_provisional_map(mapping_scenario, no_jammer_map,
+                                                           monkeypatch):
+    """One hypothesis holding the whole posterior is not a converged estimate: its map goes out
+    provisional, and no estimate with it."""
+    import cloud_service.sinr_mapping as mapping
+
+    mapper, now, fleet, published = _never_converging(monkeypatch, mapping_scenario,
+                                                      no_jammer_map, 100_000)
+
+    def single(*args, **kwargs):
+        found = jammer_hypotheses(*args, **kwargs)
+        return JammerFit(None, None if found is None
+                         else JammerHypotheses(found.estimates[:1], np.ones(1)))
+
+    monkeypatch.setattr(mapping, "locate_jammer", single)
+    while not published and now[0] < 60:
+        _fly(mapper, fleet, mapping_scenario, TABLE_I_JAMMERS[0], 1, int(now[0]) + 1, now)
+    assert published and published[0].provisional and published[0].estimate is None
+    assert "jammer_estimated" not in _types(mapper) and mapper.estimate is None
 
 
 # -- command line -----------------------------------------------------------------------------
