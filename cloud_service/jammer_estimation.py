@@ -45,7 +45,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import log_ndtr
 
-from shared.measurements import PER_GBS_FEATURES, scenario_features
+from shared.measurements import features_per_gbs, scenario_features
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 
@@ -127,7 +127,7 @@ class SinrBelief(NamedTuple):
 
 
 def positions_from_features(scenario: Scenario, features: np.ndarray) -> np.ndarray:
-    """UAV positions (n, 2) that produced the uploaded ``features`` (n, 5 K_n).
+    """UAV positions (n, 2) that produced the uploaded ``features`` (n, 5 K_n, or 6 K_n).
 
     Each GBS in turn is taken as the nearest one: the UAV then sits at that GBS minus the
     first (dx, dy). The candidate kept is the one whose own K_n nearest GBSs lie at the
@@ -138,7 +138,7 @@ def positions_from_features(scenario: Scenario, features: np.ndarray) -> np.ndar
     regular layout repeats itself, and places a lattice step apart see the same nearest
     offsets (with every GBS in view, as in icc2021, none do).
     """
-    nearby, per_gbs = scenario.policy.nearby_gbs, len(PER_GBS_FEATURES)
+    nearby, per_gbs = scenario.policy.nearby_gbs, features_per_gbs(scenario)
     features = np.asarray(features, dtype=np.float64).reshape(-1, nearby, per_gbs)
     gbs_xy = np.asarray(scenario.gbs.positions, dtype=np.float64)
     candidates = gbs_xy[None, :, :] - features[:, None, 0, :2]  # (n, K, 2)
@@ -279,9 +279,8 @@ class _Evidence:
         power_span_db: float,
     ):
         self.xy = xy
-        received = radio.gbs_received_power(xy)
-        self.interference_db = 10.0 * np.log10(
-            radio.noise_w + received.sum(axis=1) - received.max(axis=1))
+        _, _, co_channel = radio.serving(radio.gbs_received_power(xy))
+        self.interference_db = 10.0 * np.log10(radio.noise_w + co_channel)
         self.gap_m = radio.altitude_m - jammer_height_m
         self.slope_db = 5.0 * (radio.alpha + 1.0)  # I_J ~ slant_sq ** -((alpha + 1) / 2)
         self.ratio_low_db = _RATIO_RANGE_DB[0] - power_span_db

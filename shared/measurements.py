@@ -22,12 +22,20 @@ from shared.networks import SinrMapNetwork
 from shared.scenario import Scenario
 
 PER_GBS_FEATURES = ("dx", "dy", "distance", "elevation", "azimuth")
+# Added per GBS where GBSs reuse channels (``gbs.channels``): 1 if the GBS shares the channel of
+# the nearest one, else 0. Without it, a map cannot tell which GBSs interfere where.
+CO_CHANNEL_FEATURE = "co_channel"
+
+
+def features_per_gbs(scenario: Scenario) -> int:
+    return len(PER_GBS_FEATURES) + int(scenario.gbs.channels is not None)
 # Why a measurement was refused; the replay memory keeps one counter per reason.
 REJECT_REASONS = ("malformed", "wrong_length", "not_finite", "unknown_level")
 
 
 def gbs_features(
-    xy: np.ndarray, gbs_xy: np.ndarray, nearby: int, altitude: float, gbs_height: float
+    xy: np.ndarray, gbs_xy: np.ndarray, nearby: int, altitude: float, gbs_height: float,
+    gbs_channels: np.ndarray | None = None,
 ) -> np.ndarray:
     """Input of the SINR-mapping network at UAV positions ``xy`` (shape (..., 2)).
 
@@ -36,9 +44,10 @@ def gbs_features(
     UAV, in metres and radians. The frame is north-up (+x east, +y north) and only translated
     to the UAV, never turned with its heading: the SINR map depends on where the UAV is, not on
     where it points, so two UAVs at one spot must get one input. Elevation is negative when
-    the GBS is below the UAV; azimuth is counter-clockwise from +x in (-pi, pi].
+    the GBS is below the UAV; azimuth is counter-clockwise from +x in (-pi, pi]. With
+    ``gbs_channels``, a sixth: ``CO_CHANNEL_FEATURE``.
 
-    Returns float32 of shape (..., 5 * nearby).
+    Returns float32 of shape (..., 5 * nearby), or (..., 6 * nearby) with channels.
     """
     xy = np.asarray(xy, dtype=np.float64)
     gbs_xy = np.asarray(gbs_xy, dtype=np.float64)
@@ -51,8 +60,12 @@ def gbs_features(
     distance = np.take_along_axis(distance, order, axis=-1)
     elevation = np.arctan2(gbs_height - altitude, distance)
     azimuth = np.arctan2(dy, dx)
-    features = np.stack([dx, dy, distance, elevation, azimuth], axis=-1)
-    return features.reshape(xy.shape[:-1] + (len(PER_GBS_FEATURES) * nearby,)).astype(np.float32)
+    columns = [dx, dy, distance, elevation, azimuth]
+    if gbs_channels is not None:
+        channel = np.asarray(gbs_channels)[order]
+        columns.append((channel == channel[..., :1]).astype(np.float64))
+    features = np.stack(columns, axis=-1)
+    return features.reshape(xy.shape[:-1] + (len(columns) * nearby,)).astype(np.float32)
 
 
 def _nearest_first(distance: np.ndarray, nearby: int) -> np.ndarray:
@@ -87,6 +100,7 @@ def scenario_features(scenario: Scenario, xy: np.ndarray) -> np.ndarray:
         scenario.policy.nearby_gbs,
         scenario.uav.altitude_m,
         scenario.gbs.height_m,
+        scenario.gbs.channels,
     )
 
 
@@ -187,7 +201,8 @@ class MeasurementBatch:
 
 @dataclass(frozen=True)
 class MeasurementSpec:
-    """What a valid measurement looks like in one scenario: 5 * K_n features, known levels."""
+    """What a valid measurement looks like in one scenario: 5 (6 with reused channels) * K_n
+    features, known levels."""
 
     feature_size: int
     level_count: int
@@ -195,7 +210,7 @@ class MeasurementSpec:
     @classmethod
     def of(cls, scenario: Scenario) -> MeasurementSpec:
         return cls(
-            feature_size=len(PER_GBS_FEATURES) * scenario.policy.nearby_gbs,
+            feature_size=features_per_gbs(scenario) * scenario.policy.nearby_gbs,
             level_count=scenario.channel.level_count,
         )
 

@@ -66,6 +66,11 @@ class RadioModel:
         self._max_attenuation_db = gbs.max_attenuation_db
         self.measurement_noise_db = scenario.uav.measurement_noise_db
         self.shadowing = shadowing_field(scenario) if shadowed else None
+        # (K, channels) indicator, None when every GBS shares one channel (the paper's case,
+        # kept to the plain sum, bit for bit).
+        self._channel_members = (
+            None if gbs.channels is None
+            else (np.asarray(gbs.channels)[:, None] == np.unique(gbs.channels)).astype(np.float64))
 
     @staticmethod
     def jammer_of(scenario: Scenario) -> JammerParams | None:
@@ -129,6 +134,17 @@ class RadioModel:
             interference = interference * gain[:, -1]
         return received, interference
 
+    def serving(self, received: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """From received GBS powers (n, K): the serving GBS (the strongest), its power, and the
+        interference of the other GBSs on its channel."""
+        best = received.argmax(axis=1)
+        signal = np.take_along_axis(received, best[:, None], axis=1)[:, 0]
+        if self._channel_members is None:
+            return best, signal, received.sum(axis=1) - signal
+        by_channel = received @ self._channel_members
+        serving_channel = self._channel_members[best].argmax(axis=1)
+        return best, signal, by_channel[np.arange(len(best)), serving_channel] - signal
+
     def level_of(self, sinr_db: np.ndarray) -> np.ndarray:
         """Quantized level: 0 below T_s, then one level per band between the edges."""
         return np.searchsorted(self.level_edges_db, sinr_db, side="right").astype(np.int8)
@@ -163,9 +179,8 @@ class RadioModel:
                     *(f if np.ndim(f) == 0 else f[block] for f in flat_jammer)
                 )
             received, interference = self._powers(flat[block], block_jammer)
-            best = received.argmax(axis=1)
-            signal = np.take_along_axis(received, best[:, None], axis=1)[:, 0]
-            denominator = self.noise_w + interference + received.sum(axis=1) - signal
+            best, signal, co_channel = self.serving(received)
+            denominator = self.noise_w + interference + co_channel
             sinr[block] = signal / denominator
             serving[block] = best
         sinr_db = 10.0 * np.log10(sinr)

@@ -65,6 +65,17 @@ class Gbs(_Strict):
     tilt_deg: Finite
     beamwidth_3db_deg: Positive
     max_attenuation_db: NonNegative
+    # The frequency channel of each GBS, in the order of ``positions``: a GBS interferes only
+    # with receivers served on its own channel (frequency reuse). None: all share one channel,
+    # as in the paper.
+    channels: list[Annotated[int, Field(ge=0, le=1023)]] | None = None
+
+    @model_validator(mode="after")
+    def _one_channel_per_gbs(self) -> Gbs:
+        if self.channels is not None and len(self.channels) != len(self.positions):
+            raise ValueError(f"channels names {len(self.channels)} GBSs, positions "
+                             f"{len(self.positions)}")
+        return self
 
 
 class Uav(_Strict):
@@ -158,7 +169,15 @@ class Missions(_Strict):
     mode: Literal["uniform"] = "uniform"
     margin_m: NonNegative
     min_trip_m: NonNegative
+    # The longest start-to-destination distance drawn; None: any the area holds.
+    max_trip_m: Positive | None = None
     min_separation_m: NonNegative
+
+    @model_validator(mode="after")
+    def _trips_possible(self) -> Missions:
+        if self.max_trip_m is not None and self.max_trip_m < self.min_trip_m:
+            raise ValueError("missions.max_trip_m is below missions.min_trip_m")
+        return self
 
 
 class Policy(_Strict):

@@ -25,30 +25,27 @@ def icc2021() -> Scenario:
     return load_scenario("icc2021")
 
 
-def covered_share(scenario: Scenario, gbs: tuple[float, float]) -> float:
-    """Share of a GBS's own 25 m x 33 m cell with SINR >= T_s, no jammer (0.5 m raster)."""
-    xs = gbs[0] + np.arange(-12.25, 12.5, 0.5)
-    ys = gbs[1] + np.arange(-16.25, 16.5, 0.5)
-    grid = np.stack(np.meshgrid(xs, ys), axis=-1)
-    return float((RadioModel(scenario).evaluate(grid, None).level > 0).mean())
-
-
-def with_gbs(scenario: Scenario, positions: list[tuple[float, float]]) -> Scenario:
-    data = scenario.model_dump()
-    data["gbs"]["positions"] = positions
-    return Scenario.model_validate(data)
+def covered_shares(scenario: Scenario, gbs: list[tuple[float, float]]) -> np.ndarray:
+    """Share of each GBS's own 25 m x 33 m cell with SINR >= T_s, no jammer (0.5 m raster)."""
+    xs, ys = np.arange(-12.25, 12.5, 0.5), np.arange(-16.25, 16.5, 0.5)
+    cell = np.stack(np.meshgrid(xs, ys), axis=-1)
+    grid = np.asarray(gbs)[:, None, None, :] + cell
+    return (RadioModel(scenario).evaluate(grid, None).level > 0).mean(axis=(1, 2))
 
 
 def test_city_is_icc2021_tiled_with_its_density_of_uavs(city, icc2021):
     assert (city.area.x_max - city.area.x_min, city.area.y_max - city.area.y_min) == (400, 400)
     assert city.missions.uav_count == 4 * 16 == icc2021.missions.uav_count * 16
+    # Trips as long as icc2021's at most: the diagonal of its mission square.
+    side = icc2021.area.x_max - icc2021.area.x_min - 2 * icc2021.missions.margin_m
+    assert city.missions.max_trip_m == pytest.approx(np.hypot(side, side), abs=0.05)
     # Only the mission's time limit grows with the area.
     for section in ("uav", "channel", "jammer", "rewards", "timing"):
         exclude = {"episode_limit_s"} if section == "timing" else None
         assert (getattr(city, section).model_dump(exclude=exclude)
                 == getattr(icc2021, section).model_dump(exclude=exclude)), section
-    assert city.gbs.model_dump(exclude={"positions"}) == icc2021.gbs.model_dump(
-        exclude={"positions"})
+    assert city.gbs.model_dump(exclude={"positions", "channels"}) == icc2021.gbs.model_dump(
+        exclude={"positions", "channels"})
     tiled = {(x + bx, y + by) for bx in BLOCK_CENTRES for by in BLOCK_CENTRES
              for x, y in icc2021.gbs.positions}
     assert set(map(tuple, city.gbs.positions)) == tiled
@@ -56,19 +53,32 @@ def test_city_is_icc2021_tiled_with_its_density_of_uavs(city, icc2021):
     assert sinr_map_for("city") == SINR_MAP_NO_JAMMER_CITY and SINR_MAP_NO_JAMMER_CITY.is_file()
 
 
-def test_a_blocks_cells_cover_as_icc2021s_and_interior_cells_alike(city, icc2021):
-    # One 100 m block alone is icc2021 moved: each GBS's own cell is covered alike.
-    block = [(x + 50.0, y - 50.0) for x, y in icc2021.gbs.positions]
-    alone = with_gbs(city, block)
-    for (x, y), (bx, by) in zip(icc2021.gbs.positions, block, strict=True):
-        assert covered_share(alone, (bx, by)) == pytest.approx(covered_share(icc2021, (x, y)),
-                                                               abs=0.005)
-    # In the whole city every interior cell is alike, and less covered than icc2021's interior
-    # ones: 180 more GBSs interfere.
-    interior = [(-112.5, 17.0), (87.5, -83.0), (-37.5, -50.0), (62.5, 117.0), (12.5, 83.0)]
-    shares = [covered_share(city, gbs) for gbs in interior]
-    assert max(shares) - min(shares) < 0.06
-    assert max(shares) < covered_share(icc2021, (-12.5, 0.0)) - 0.15
+def test_reuse_gives_each_block_a_channel_shared_only_300_m_away(city):
+    centre = {gbs: ((gbs[0] + 200) // 100, (gbs[1] + 200) // 100)
+              for gbs in map(tuple, city.gbs.positions)}
+    channel_of_block = {}
+    for gbs, channel in zip(map(tuple, city.gbs.positions), city.gbs.channels, strict=True):
+        assert channel_of_block.setdefault(centre[gbs], channel) == channel
+    assert len(channel_of_block) == 16 and len(set(channel_of_block.values())) == 9
+    for a, channel_a in channel_of_block.items():
+        for b, channel_b in channel_of_block.items():
+            if a != b and channel_a == channel_b:
+                assert max(abs(a[0] - b[0]), abs(a[1] - b[1])) == 3
+
+
+def test_every_gbs_covers_its_cell_as_its_icc2021_counterpart(city, icc2021):
+    # A GBS's counterpart: the icc2021 GBS at the same place in its 100 m block.
+    counterpart = [(x - (x + 200) // 100 * 100 + 150, y - (y + 200) // 100 * 100 + 150)
+                   for x, y in city.gbs.positions]
+    assert set(counterpart) == set(map(tuple, icc2021.gbs.positions))
+    shares = dict(zip(map(tuple, icc2021.gbs.positions),
+                      covered_shares(icc2021, icc2021.gbs.positions), strict=True))
+    expected = np.array([shares[gbs] for gbs in counterpart])
+    city_shares = covered_shares(city, city.gbs.positions)
+    np.testing.assert_allclose(city_shares, expected, atol=0.02)
+    # One channel for all: 180 more GBSs interfere with every cell.
+    one_channel = city.model_copy(update={"gbs": city.gbs.model_copy(update={"channels": None})})
+    assert (covered_shares(one_channel, city.gbs.positions) < expected - 0.1).mean() > 0.9
 
 
 def test_near_pairs_finds_every_pair_within_reach():
@@ -106,7 +116,7 @@ def test_256_uavs_fly_the_city_and_decide_as_if_they_saw_everyone(city):
         moved = np.hypot(*(world.position - before).reshape(-1, 2).T)
         assert np.all(moved <= city.uav.max_speed_mps * city.timing.step_s + 1e-9)
     # No trip is that short, and the safe cells keep every pair apart: a UAV has either flown on
-    # or, starting in one of the city's wide uncovered streets, been below T_s too long.
+    # or, starting between coverage islands, been below T_s too long.
     assert np.isin(world.status, [Outcome.ACTIVE, Outcome.DISCONNECTION]).all()
     lost = world.status == Outcome.DISCONNECTION
     assert (world.below_steps[lost] > city.timing.disconnection_limit_steps).all()

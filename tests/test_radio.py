@@ -35,7 +35,9 @@ def reference_sinr_db(scenario, x, y, jammer=None):
         efficiency = 10 ** (scenario.jammer.efficiency_db / 10)
         interference = jp * efficiency * slant ** (-alpha) * (hv - jh) / slant
     k = int(np.argmax(powers))
-    sinr = powers[k] / (channel.noise_w + interference + sum(powers) - powers[k])
+    channels = gbs.channels or [0] * len(powers)
+    co_channel = sum(p for p, c in zip(powers, channels, strict=True) if c == channels[k])
+    sinr = powers[k] / (channel.noise_w + interference + co_channel - powers[k])
     return 10 * math.log10(sinr), k
 
 
@@ -68,6 +70,23 @@ def test_matches_term_by_term_reference(scenario):
             want_db, want_k = reference_sinr_db(scenario, x, y, jammer)
             assert math.isclose(db, want_db, rel_tol=1e-9, abs_tol=1e-9)
             assert serving == want_k
+
+
+def test_reused_channels_match_the_reference(scenario):
+    # Three channels over the 12 GBSs: only the serving GBS's own channel interferes.
+    reused = variant(scenario, gbs={"channels": [0, 1, 2, 7] * 3})
+    radio, alone = RadioModel(reused), RadioModel(scenario)
+    points = np.random.default_rng(8).uniform(-50, 50, size=(40, 2))
+    jammer = JammerParams(10.0, 5.0, 1.0, 30.0)
+    reading = radio.evaluate(points, jammer)
+    for (x, y), db, serving in zip(points, reading.sinr_db, reading.serving_gbs, strict=True):
+        want_db, want_k = reference_sinr_db(reused, x, y, jammer)
+        assert math.isclose(db, want_db, rel_tol=1e-9, abs_tol=1e-9)
+        assert serving == want_k
+    # Fewer interferers, the same serving GBS: never a lower SINR.
+    one_channel = alone.evaluate(points, jammer)
+    assert (reading.sinr_db > one_channel.sinr_db).all()
+    np.testing.assert_array_equal(reading.serving_gbs, one_channel.serving_gbs)
 
 
 def test_levels_follow_edges(scenario):

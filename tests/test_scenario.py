@@ -42,6 +42,10 @@ def test_load_by_path_equals_load_by_name():
         ("seed = 1", "seed = -1", "shadowing.seed"),
         ("measurement_noise_db = 1.0", "measurement_noise_db = -1.0",
          "uav.measurement_noise_db"),
+        ("min_trip_m = 40.0", "min_trip_m = 40.0\nmax_trip_m = 30.0", "missions"),
+        ("max_attenuation_db = 20.0", "max_attenuation_db = 20.0\nchannels = [0, 1]", "gbs"),
+        ("max_attenuation_db = 20.0", "max_attenuation_db = 20.0\nchannels = " + str([-1] * 12),
+         "gbs.channels"),
     ],
 )
 def test_invalid_files_give_one_line_naming_file_and_field(tmp_path, old, new, field):

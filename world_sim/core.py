@@ -75,6 +75,7 @@ class MissionSampler:
         if np.any(self.low >= self.high):
             raise ValueError("missions.margin_m leaves no room inside the area")
         self.min_trip = missions.min_trip_m
+        self.max_trip = math.inf if missions.max_trip_m is None else missions.max_trip_m
         self.min_separation = max(missions.min_separation_m, 2 * scenario.uav.radius_m + 1e-6)
 
     def sample(self, seed: int, num_uavs: int) -> tuple[np.ndarray, np.ndarray]:
@@ -84,9 +85,10 @@ class MissionSampler:
         start_spread, goal_spread = _Spread(self.min_separation), _Spread(self.min_separation)
         for _ in range(_MAX_DRAWS):
             draw = rng.uniform(self.low, self.high, size=(2, _CANDIDATES_PER_DRAW, 2))
-            long_enough = np.hypot(*(draw[1] - draw[0]).T) >= self.min_trip
+            trip = np.hypot(*(draw[1] - draw[0]).T)
+            drawn = (trip >= self.min_trip) & (trip <= self.max_trip)
             for (sx, sy), (gx, gy) in zip(
-                draw[0][long_enough].tolist(), draw[1][long_enough].tolist(), strict=True
+                draw[0][drawn].tolist(), draw[1][drawn].tolist(), strict=True
             ):
                 if not (start_spread.clear_of(sx, sy) and goal_spread.clear_of(gx, gy)):
                     continue
@@ -98,7 +100,7 @@ class MissionSampler:
                     return np.asarray(starts), np.asarray(goals)
         raise ValueError(
             f"could not place {num_uavs} missions in the area: lower missions.min_trip_m or "
-            "missions.min_separation_m"
+            "missions.min_separation_m, or raise missions.max_trip_m"
         )
 
 
