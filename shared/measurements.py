@@ -29,6 +29,13 @@ CO_CHANNEL_FEATURE = "co_channel"
 
 def features_per_gbs(scenario: Scenario) -> int:
     return len(PER_GBS_FEATURES) + int(scenario.gbs.channels is not None)
+
+
+def feature_size(scenario: Scenario) -> int:
+    """Length of a measurement's features: per nearby GBS, then the nearest one's position
+    where ``policy.nearest_gbs_position`` asks for it."""
+    return (features_per_gbs(scenario) * scenario.policy.nearby_gbs
+            + 2 * int(scenario.policy.nearest_gbs_position))
 # Why a measurement was refused; the replay memory keeps one counter per reason.
 REJECT_REASONS = ("malformed", "wrong_length", "not_finite", "unknown_level")
 
@@ -93,15 +100,18 @@ def _nearest_first(distance: np.ndarray, nearby: int) -> np.ndarray:
 
 
 def scenario_features(scenario: Scenario, xy: np.ndarray) -> np.ndarray:
-    """``gbs_features`` with the scenario's GBS layout, K_n, UAV altitude and GBS height."""
-    return gbs_features(
-        xy,
-        np.asarray(scenario.gbs.positions),
-        scenario.policy.nearby_gbs,
-        scenario.uav.altitude_m,
-        scenario.gbs.height_m,
-        scenario.gbs.channels,
-    )
+    """``gbs_features`` with the scenario's GBS layout, K_n, UAV altitude, GBS height and
+    channels, then the nearest GBS's position if the scenario asks for it."""
+    gbs_xy = np.asarray(scenario.gbs.positions, dtype=np.float64)
+    features = gbs_features(xy, gbs_xy, scenario.policy.nearby_gbs, scenario.uav.altitude_m,
+                            scenario.gbs.height_m, scenario.gbs.channels)
+    if not scenario.policy.nearest_gbs_position:
+        return features
+    xy = np.asarray(xy, dtype=np.float64)
+    # argmin takes the lowest index among equals, as gbs_features orders them.
+    nearest = np.argmin(np.hypot(gbs_xy[:, 0] - xy[..., 0, None], gbs_xy[:, 1] - xy[..., 1, None]),
+                        axis=-1)
+    return np.concatenate([features, gbs_xy[nearest].astype(np.float32)], axis=-1)
 
 
 class Measurement(BaseModel):
@@ -201,8 +211,8 @@ class MeasurementBatch:
 
 @dataclass(frozen=True)
 class MeasurementSpec:
-    """What a valid measurement looks like in one scenario: 5 (6 with reused channels) * K_n
-    features, known levels."""
+    """What a valid measurement looks like in one scenario: ``feature_size`` features, known
+    levels."""
 
     feature_size: int
     level_count: int
@@ -210,7 +220,7 @@ class MeasurementSpec:
     @classmethod
     def of(cls, scenario: Scenario) -> MeasurementSpec:
         return cls(
-            feature_size=features_per_gbs(scenario) * scenario.policy.nearby_gbs,
+            feature_size=feature_size(scenario),
             level_count=scenario.channel.level_count,
         )
 

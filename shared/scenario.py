@@ -184,6 +184,10 @@ class Policy(_Strict):
     gamma: Annotated[float, Field(gt=0, le=1)]
     observed_uavs: int = Field(ge=0, le=16)
     nearby_gbs: int = Field(ge=1)
+    # Whether a measurement's features end with the nearest GBS's own position (its cell
+    # identity, which a receiver decodes): on a layout that repeats itself, the offsets alone
+    # do not tell the cloud where a measurement was taken (shared/measurements.py).
+    nearest_gbs_position: bool = False
     value_scale: Positive
     orca_time_horizon_s: Positive
     route_cell_m: Positive

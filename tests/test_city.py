@@ -4,8 +4,10 @@ import numpy as np
 import pytest
 
 from cloud_service.evaluation import load_policy
+from cloud_service.jammer_estimation import positions_from_features
 from cloud_service.rollout import LookaheadController, fleet_observation, perfect_maps
 from shared.features import Observation
+from shared.measurements import scenario_features
 from shared.outcomes import Outcome
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
@@ -121,3 +123,17 @@ def test_256_uavs_fly_the_city_and_decide_as_if_they_saw_everyone(city):
     lost = world.status == Outcome.DISCONNECTION
     assert (world.below_steps[lost] > city.timing.disconnection_limit_steps).all()
     assert (world.status == Outcome.ACTIVE).mean() > 0.5
+
+
+def test_the_cloud_places_every_city_measurement_by_its_named_gbs(city):
+    xy = np.random.default_rng(3).uniform(-200, 200, size=(500, 2))
+    features = scenario_features(city, xy)
+    np.testing.assert_allclose(positions_from_features(city, features), xy, atol=1e-5)
+    # A measurement naming a place where no GBS stands is refused.
+    moved = features.copy()
+    moved[:, -2] += 12.5
+    assert np.isnan(positions_from_features(city, moved)).all()
+    # Offsets alone fit several places of the repeated layout: most cannot be placed.
+    unnamed = city.changed({"policy.nearest_gbs_position": False})
+    placed = ~np.isnan(positions_from_features(unnamed, scenario_features(unnamed, xy))[:, 0])
+    assert placed.mean() < 0.2
