@@ -22,12 +22,11 @@ from shared.networks import SinrMapNetwork
 from shared.scenario import Scenario
 
 PER_GBS_FEATURES = ("dx", "dy", "distance", "elevation", "azimuth")
-# Added per GBS where GBSs reuse channels (``gbs.channels``): 1 if the GBS shares the channel of
-# the nearest one, else 0. Without it, a map cannot tell which GBSs interfere where.
-CO_CHANNEL_FEATURE = "co_channel"
 
 
 def features_per_gbs(scenario: Scenario) -> int:
+    """``PER_GBS_FEATURES``, and where GBSs reuse channels (``gbs.channels``) a co-channel
+    flag: without it, a map cannot tell which GBSs interfere where."""
     return len(PER_GBS_FEATURES) + int(scenario.gbs.channels is not None)
 
 
@@ -36,6 +35,8 @@ def feature_size(scenario: Scenario) -> int:
     where ``policy.nearest_gbs_position`` asks for it."""
     return (features_per_gbs(scenario) * scenario.policy.nearby_gbs
             + 2 * int(scenario.policy.nearest_gbs_position))
+
+
 # Why a measurement was refused; the replay memory keeps one counter per reason.
 REJECT_REASONS = ("malformed", "wrong_length", "not_finite", "unknown_level")
 
@@ -52,7 +53,7 @@ def gbs_features(
     to the UAV, never turned with its heading: the SINR map depends on where the UAV is, not on
     where it points, so two UAVs at one spot must get one input. Elevation is negative when
     the GBS is below the UAV; azimuth is counter-clockwise from +x in (-pi, pi]. With
-    ``gbs_channels``, a sixth: ``CO_CHANNEL_FEATURE``.
+    ``gbs_channels``, a sixth: 1 if the GBS shares the nearest GBS's channel, else 0.
 
     Returns float32 of shape (..., 5 * nearby), or (..., 6 * nearby) with channels.
     """

@@ -62,6 +62,16 @@ def test_gbs_features_nearest_first_and_batched():
     np.testing.assert_allclose(got[1, 2, [0, 1, 2, 5, 6, 7]], [0, 1, 1, -5, 0, 5])
 
 
+def test_gbs_features_flag_the_gbss_on_the_nearest_ones_channel():
+    # Nearest first: (0, 1) on channel 4, (-5, 0) on 2, (10, 0) on 4.
+    gbs = np.array([[10.0, 0.0], [0.0, 1.0], [-5.0, 0.0]])
+    got = gbs_features(np.zeros(2), gbs, 3, 50.0, 32.0, gbs_channels=[4, 4, 2])
+    assert got.shape == (18,)
+    np.testing.assert_array_equal(got.reshape(3, 6)[:, 5], [1, 0, 1])
+    np.testing.assert_array_equal(got.reshape(3, 6)[:, :5],
+                                  gbs_features(np.zeros(2), gbs, 3, 50.0, 32.0).reshape(3, 5))
+
+
 @settings(max_examples=50, deadline=None)
 @given(
     uav=st.tuples(st.floats(-100, 100), st.floats(-100, 100)),
