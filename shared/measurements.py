@@ -57,10 +57,20 @@ def gbs_features(
 
     Returns float32 of shape (..., 5 * nearby), or (..., 6 * nearby) with channels.
     """
+    return _nearby_gbs_features(xy, gbs_xy, nearby, altitude, gbs_height, gbs_channels)[0]
+
+
+def _nearby_gbs_features(
+    xy: np.ndarray, gbs_xy: np.ndarray, nearby: int, altitude: float, gbs_height: float,
+    gbs_channels: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``gbs_features`` and the index of each point's nearest GBS."""
     xy = np.asarray(xy, dtype=np.float64)
     gbs_xy = np.asarray(gbs_xy, dtype=np.float64)
-    dx = gbs_xy[:, 0] - xy[..., 0, None]
-    dy = gbs_xy[:, 1] - xy[..., 1, None]
+    within = _candidates(xy, gbs_xy, nearby)
+    local = gbs_xy[within]
+    dx = local[:, 0] - xy[..., 0, None]
+    dy = local[:, 1] - xy[..., 1, None]
     distance = np.hypot(dx, dy)
     order = _nearest_first(distance, nearby)
     dx = np.take_along_axis(dx, order, axis=-1)
@@ -70,10 +80,29 @@ def gbs_features(
     azimuth = np.arctan2(dy, dx)
     columns = [dx, dy, distance, elevation, azimuth]
     if gbs_channels is not None:
-        channel = np.asarray(gbs_channels)[order]
+        channel = np.asarray(gbs_channels)[within][order]
         columns.append((channel == channel[..., :1]).astype(np.float64))
     features = np.stack(columns, axis=-1)
-    return features.reshape(xy.shape[:-1] + (len(columns) * nearby,)).astype(np.float32)
+    return (features.reshape(xy.shape[:-1] + (len(columns) * nearby,)).astype(np.float32),
+            within[order[..., 0]])
+
+
+def _candidates(xy: np.ndarray, gbs_xy: np.ndarray, nearby: int) -> np.ndarray:
+    """Indices, ascending, of the GBSs that can be among the ``nearby`` nearest of some point
+    of ``xy``: all of them, but for a compact block of points on a large layout (a raster
+    tile in the city) only those within the centre's ``nearby``-th distance plus the block's
+    diameter. A point p within r of the centre c has its ``nearby`` nearest within
+    d_k(c) + r of p, so within d_k(c) + 2 r of c: the features are the same as from all."""
+    every = np.arange(len(gbs_xy))
+    flat = xy.reshape(-1, 2)
+    if len(gbs_xy) <= 2 * nearby or len(flat) == 0:
+        return every
+    low, high = flat.min(axis=0), flat.max(axis=0)
+    centre, reach = (low + high) / 2, float(np.hypot(*(high - low))) / 2
+    distance = np.hypot(*(gbs_xy - centre).T)
+    kth = np.partition(distance, nearby - 1)[nearby - 1]
+    # A millimetre of slack: rounding must not drop a GBS on the boundary.
+    return np.flatnonzero(distance <= kth + 2 * reach + 1e-3)
 
 
 def _nearest_first(distance: np.ndarray, nearby: int) -> np.ndarray:
@@ -104,14 +133,11 @@ def scenario_features(scenario: Scenario, xy: np.ndarray) -> np.ndarray:
     """``gbs_features`` with the scenario's GBS layout, K_n, UAV altitude, GBS height and
     channels, then the nearest GBS's position if the scenario asks for it."""
     gbs_xy = np.asarray(scenario.gbs.positions, dtype=np.float64)
-    features = gbs_features(xy, gbs_xy, scenario.policy.nearby_gbs, scenario.uav.altitude_m,
-                            scenario.gbs.height_m, scenario.gbs.channels)
+    features, nearest = _nearby_gbs_features(
+        xy, gbs_xy, scenario.policy.nearby_gbs, scenario.uav.altitude_m, scenario.gbs.height_m,
+        scenario.gbs.channels)
     if not scenario.policy.nearest_gbs_position:
         return features
-    xy = np.asarray(xy, dtype=np.float64)
-    # argmin takes the lowest index among equals, as gbs_features orders them.
-    nearest = np.argmin(np.hypot(gbs_xy[:, 0] - xy[..., 0, None], gbs_xy[:, 1] - xy[..., 1, None]),
-                        axis=-1)
     return np.concatenate([features, gbs_xy[nearest].astype(np.float32)], axis=-1)
 
 

@@ -57,6 +57,7 @@ MAP_SPACING_M = 0.5  # raster spacing of the lookahead's maps: well below a UAV'
 # Grid rows whose SINR-map features are computed at once: an agent's memory peaks 6 MiB above
 # its floor while it samples the icc2021 map (22 MiB with 64 rows, and no faster).
 RASTER_BLOCK_ROWS = 16
+RASTER_TILE_COLUMNS = 64
 
 
 class TrueMap:
@@ -125,10 +126,14 @@ def sinr_network_raster(
     """A SINR-mapping network's map sampled on the lookahead's grid, a block of rows at a time
     (the features of a whole city-sized grid at once would take gigabytes)."""
 
+    def features(rows: np.ndarray) -> np.ndarray:
+        # Tile by tile: a compact tile reads only the GBSs near it (the city's ~40 of 192).
+        tiles = np.array_split(rows, max(1, rows.shape[1] // RASTER_TILE_COLUMNS), axis=1)
+        return np.concatenate([scenario_features(scenario, tile) for tile in tiles], axis=1)
+
     def levels(grid: np.ndarray) -> np.ndarray:
         blocks = np.array_split(grid, max(1, grid.shape[0] // RASTER_BLOCK_ROWS))
-        return np.concatenate([predict_levels(network, scenario_features(scenario, block))
-                               for block in blocks])
+        return np.concatenate([predict_levels(network, features(block)) for block in blocks])
 
     return LevelRaster.sample(scenario, levels, spacing)
 

@@ -62,6 +62,24 @@ def test_gbs_features_nearest_first_and_batched():
     np.testing.assert_allclose(got[1, 2, [0, 1, 2, 5, 6, 7]], [0, 1, 1, -5, 0, 5])
 
 
+@settings(max_examples=40, deadline=None)
+@given(corner=st.tuples(st.floats(-120, 100), st.floats(-120, 100)),
+       size=st.tuples(st.floats(0, 40), st.floats(0, 40)), nearby=st.integers(1, 12))
+def test_gbs_features_of_a_block_pick_the_nearest_of_all_gbss(corner, size, nearby):
+    # A lattice layout of 100 GBSs, full of equal distances: a block reads only the GBSs near
+    # it, and must still pick, point by point, the nearest of all, ties in layout order.
+    gbs = np.stack(np.meshgrid(np.arange(-100.0, 100.0, 20.0), np.arange(-100.0, 100.0, 20.0)),
+                   axis=-1).reshape(-1, 2)
+    xs = corner[0] + np.linspace(0, size[0], 7)
+    ys = corner[1] + np.linspace(0, size[1], 5)
+    block = np.stack(np.meshgrid(xs, ys), axis=-1)
+    got = gbs_features(block, gbs, nearby, 50.0, 32.0).reshape(5, 7, nearby, 5)
+    for row, col in np.ndindex(5, 7):
+        xy = block[row, col]
+        nearest = np.argsort(np.hypot(*(gbs - xy).T), kind="stable")[:nearby]
+        np.testing.assert_array_equal(got[row, col, :, :2], (gbs[nearest] - xy).astype(np.float32))
+
+
 def test_gbs_features_flag_the_gbss_on_the_nearest_ones_channel():
     # Nearest first: (0, 1) on channel 4, (-5, 0) on 2, (10, 0) on 4.
     gbs = np.array([[10.0, 0.0], [0.0, 1.0], [-5.0, 0.0]])
