@@ -223,8 +223,11 @@ class RetrainConfig:
     # DNN what the uploads have not reached yet.
     prior_points: int = 4000
     # Without a converged estimate, the DNN alone retrains once this many post-change
-    # measurements are in.
+    # measurements are in, and the estimate has been tried ``min_tries`` times: four UAVs
+    # bring 4,000 in after ~20 tries, 256 in a second, after two (the city: that map went out
+    # unsettled by any estimate, and its errors raised a false change a second later).
     min_samples: int = 4000
+    min_tries: int = 8
     # Mini-batches of 200 (~0.8 s on one core) per fit.
     steps: int = 1000
     # ... per provisional map: a stopgap, out in a fraction of the time, that the next try
@@ -264,7 +267,8 @@ class OnlineSinrMapper:
     3. every ``retrain.refine_every`` further measurements, estimate and fit again, until
        ``retrain.settle_after``; then the detector re-arms on the final map.
     Without any converged estimate, the DNN alone retrains on ``retrain.min_samples``
-    post-change measurements (the paper's path). Work runs in a worker thread when
+    post-change measurements, once the estimate was tried ``retrain.min_tries`` times (the
+    paper's path). Work runs in a worker thread when
     ``background`` (``ingest`` never waits), inline otherwise (deterministic simulations);
     each new map calls ``publish(PublishedWeights)``.
 
@@ -433,6 +437,7 @@ class OnlineSinrMapper:
                                                                              data.features))
         estimate = located.estimate
         change.tried_at = len(data)
+        change.tries += 1
         if estimate is None and change.estimate is not None:
             estimate = change.estimate  # refining: keep the last estimate that converged
         if estimate is not None:
@@ -544,6 +549,7 @@ class _Change:
     measurements: int  # stored since ``start``
     estimate: JammerEstimate | None = None
     tried_at: int = 0  # post-change measurements at the last estimate attempt
+    tries: int = 0  # estimate attempts
     fitted_at: int = 0  # ... at the last fit
     failure_logged: bool = False
 
@@ -554,7 +560,7 @@ class _Change:
     def next_job(self, config: RetrainConfig) -> str | None:
         n = self.measurements
         if self.estimate is None:
-            if n >= config.min_samples:
+            if n >= config.min_samples and self.tries >= config.min_tries:
                 return "fit"
             if n >= max(config.estimate_from, self.tried_at + config.estimate_every,
                         config.estimate_growth * self.tried_at):

@@ -19,6 +19,7 @@ from cloud_service.sinr_mapping import (
     OnlineSinrMapper,
     PublishedWeights,
     RetrainConfig,
+    _Change,
     simulated_measurements,
 )
 from cloud_service.sinr_memory import SinrMemory
@@ -369,6 +370,19 @@ def test_provisional_maps_go_out_until_an_estimate_converges(mapping_scenario, n
     # Closer to the truth where the jammer is than the survey map, and as right far from it.
     assert (levels[near] == truth[near]).mean() > (survey[near] == truth[near]).mean()
     assert (levels[~near] == truth[~near]).mean() >= (survey[~near] == truth[~near]).mean() - 0.02
+
+
+def test_the_dnn_alone_waits_for_the_estimators_tries():
+    """A large fleet brings ``min_samples`` in before the estimate is tried twice: the
+    estimator tries on, growing its data, until ``min_tries``; then the DNN alone may go."""
+    config = RetrainConfig()
+    change = _Change(start=0.0, measurements=3 * config.min_samples,
+                     tried_at=2 * config.min_samples, tries=2)
+    assert change.next_job(config) == "estimate"
+    change.tried_at = change.measurements
+    assert change.next_job(config) is None  # the next try waits for 25 % more data
+    change.tries = config.min_tries
+    assert change.next_job(config) == "fit"
 
 
 def test_a_single_hypothesis_still_makes_a_provisional_map(mapping_scenario, no_jammer_map,
