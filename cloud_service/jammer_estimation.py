@@ -421,8 +421,7 @@ def jammer_hypotheses(
     none (best LLR at least ``presence_llr``); None otherwise.
     The same search and model as ``estimate_jammer``, which answers None in that case when
     the posterior is too wide."""
-    searched = _coarse_search(scenario, xy, levels, no_jammer_levels, None, REPORT_SIGMA_DB,
-                              OUTLIER_SHARE, INDEPENDENT_SPACING_M, MIN_MEASUREMENTS)
+    searched = _default_search(scenario, xy, levels, no_jammer_levels)
     if searched is None:
         return None
     return _hypotheses(scenario, searched, mass, most, presence_llr)
@@ -437,8 +436,7 @@ def locate_jammer(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, *,
                   no_jammer_levels: np.ndarray | None = None) -> JammerFit:
     """``estimate_jammer`` and, if it gives no estimate, ``jammer_hypotheses``, both with
     their defaults, from one coarse search (most of the cost of each)."""
-    searched = _coarse_search(scenario, xy, levels, no_jammer_levels, None, REPORT_SIGMA_DB,
-                              OUTLIER_SHARE, INDEPENDENT_SPACING_M, MIN_MEASUREMENTS)
+    searched = _default_search(scenario, xy, levels, no_jammer_levels)
     if searched is None:
         return JammerFit(None, None)
     estimate = _decide(scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M)
@@ -478,6 +476,13 @@ class _Searched(NamedTuple):
     evidence: _Evidence
     search: _CoarseSearch
     llr: np.ndarray  # (positions, powers): weighted LLR of each hypothesis against none
+
+
+def _default_search(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
+                    no_jammer_levels: np.ndarray | None) -> _Searched | None:
+    """``_coarse_search`` with ``estimate_jammer``'s defaults."""
+    return _coarse_search(scenario, xy, levels, no_jammer_levels, None, REPORT_SIGMA_DB,
+                          OUTLIER_SHARE, INDEPENDENT_SPACING_M, MIN_MEASUREMENTS)
 
 
 def _coarse_search(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
@@ -665,7 +670,9 @@ def _corrected(scenario: Scenario, base: np.ndarray, jammer: JammerEstimate | Ja
     if not any(estimate.present for estimate in estimates):
         return sum(weight * certain for weight in weights)
     radio = RadioModel(scenario, shadowed=False)
-    ideal_db = radio.evaluate(flat).sinr_db
+    # The GBS side once; each hypothesis adds only its own jammer term.
+    _, signal, co_channel = radio.serving(radio.gbs_received_power(flat))
+    ideal_db = 10.0 * np.log10(radio.sinr_of(signal, co_channel, 0.0))
     band_low, band_high = _band_edges(radio, base)
     if shadowing_sigma_db is None:
         shadowing_sigma_db = _fitted_sigma(ideal_db, band_low, band_high)
@@ -677,7 +684,8 @@ def _corrected(scenario: Scenario, base: np.ndarray, jammer: JammerEstimate | Ja
             total = total + weight * certain
             continue
         params = JammerParams(estimate.x, estimate.y, estimate.power_w, scenario.jammer.height_m)
-        loss_db = ideal_db - radio.evaluate(flat, params).sinr_db
+        jammed = radio.sinr_of(signal, co_channel, radio.jammer_interference(flat, params))
+        loss_db = ideal_db - 10.0 * np.log10(jammed)
         # Level k needs the no-jammer SINR in [bounds_k + loss, bounds_k+1 + loss) and its band.
         low = np.maximum(band_low, bounds[:-1] + loss_db)
         high = np.minimum(band_high, bounds[1:] + loss_db)

@@ -145,6 +145,12 @@ class RadioModel:
         serving_channel = self._channel_members[best].argmax(axis=1)
         return best, signal, by_channel[np.arange(len(best)), serving_channel] - signal
 
+    def sinr_of(self, signal: np.ndarray, co_channel: np.ndarray,
+                interference: np.ndarray | float) -> np.ndarray:
+        """Eq. (1) from its parts (``serving``'s signal and co-channel interference, and the
+        jammer's): linear SINR."""
+        return signal / (self.noise_w + interference + co_channel)
+
     def level_of(self, sinr_db: np.ndarray) -> np.ndarray:
         """Quantized level: 0 below T_s, then one level per band between the edges."""
         return np.searchsorted(self.level_edges_db, sinr_db, side="right").astype(np.int8)
@@ -180,8 +186,7 @@ class RadioModel:
                 )
             received, interference = self._powers(flat[block], block_jammer)
             best, signal, co_channel = self.serving(received)
-            denominator = self.noise_w + interference + co_channel
-            sinr[block] = signal / denominator
+            sinr[block] = self.sinr_of(signal, co_channel, interference)
             serving[block] = best
         sinr_db = 10.0 * np.log10(sinr)
         return RadioReading(
