@@ -313,7 +313,9 @@ def td_targets(
 def validate(scenario: Scenario, net: ValueNetwork, episodes: int, uavs: int) -> dict[str, float]:
     """Greedy lookahead on the true map, over the fixed validation episodes of each Table I
     jammer setting: the share of UAV-episodes ending in each outcome."""
-    policy = LookaheadPolicy(scenario, net)
+    # The lookahead the network is trained with: selecting checkpoints by a deeper search
+    # would score the search as much as the network.
+    policy = LookaheadPolicy(scenario, net, lookahead_depth=1)
     outcomes = [
         run_episodes(scenario, LookaheadController(policy, perfect_maps(scenario)), episodes,
                      VALIDATION_SEED, setting, uavs).outcomes

@@ -127,10 +127,19 @@ ONE_STEP_ACTIONS = [28, 0, 45, 27, 45, 44, 38, 28, 37, 0, 38, 43, 2, 8, 36, 10, 
 
 def test_depth_one_decides_as_the_one_step_lookahead_did(fleet_case):
     scenario, network, fleet, radio_map = fleet_case
-    assert scenario.policy.lookahead_depth == 1  # the shipped default
-    for policy in (LookaheadPolicy(scenario, network),
-                   LookaheadPolicy(scenario, network, lookahead_depth=1)):
-        np.testing.assert_array_equal(policy.decide(fleet, radio_map).action, ONE_STEP_ACTIONS)
+    policy = LookaheadPolicy(scenario, network, lookahead_depth=1)
+    np.testing.assert_array_equal(policy.decide(fleet, radio_map).action, ONE_STEP_ACTIONS)
+
+
+def test_the_papers_method_stays_one_step_where_the_scenario_searches_deeper(fleet_case):
+    scenario, _, fleet, radio_map = fleet_case
+    assert scenario.policy.lookahead_depth == 2  # the shipped default
+    paper = scripted(ProjectionValue, joint_state_size(scenario), {})
+    one_step = LookaheadPolicy(scenario, paper, lookahead_depth=1).decide(fleet, radio_map)
+    default = LookaheadPolicy(scenario, paper).decide(fleet, radio_map)
+    deeper = LookaheadPolicy(scenario, paper, lookahead_depth=2).decide(fleet, radio_map)
+    np.testing.assert_array_equal(default.action, one_step.action)
+    assert np.any(deeper.action != one_step.action)  # the override still searches
 
 
 def test_only_uavs_at_risk_decide_differently_at_depth_two(fleet_case):
@@ -150,7 +159,7 @@ def test_only_uavs_at_risk_decide_differently_at_depth_two(fleet_case):
 
 @pytest.mark.parametrize("depth", ["0", "4", "1.5"])
 def test_a_lookahead_depth_out_of_range_is_refused(tmp_path, depth):
-    path = write_variant(tmp_path, "lookahead_depth = 1", f"lookahead_depth = {depth}")
+    path = write_variant(tmp_path, "lookahead_depth = 2", f"lookahead_depth = {depth}")
     with pytest.raises(ScenarioError, match="policy.lookahead_depth"):
         load_scenario(path)
 

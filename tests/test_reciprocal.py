@@ -132,6 +132,6 @@ def test_the_reciprocal_model_moves_the_others_in_the_expansion(scenario):
 
 
 def test_an_unknown_others_model_is_refused_by_name(tmp_path):
-    path = write_variant(tmp_path, "lookahead_depth = 1", 'others_model = "telepathic"')
+    path = write_variant(tmp_path, "lookahead_depth = 2", 'others_model = "telepathic"')
     with pytest.raises(ScenarioError, match="others_model"):
         load_scenario(path)
