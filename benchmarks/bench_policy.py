@@ -1,6 +1,7 @@
 """Lookahead decisions/s: full evaluation of every permissible action for 256 UAVs at once
 (64 environments x 4 UAVs), true map with a jammer, value network on one CPU thread; for the
-paper's method, and for the shipped extended network (route distances and safe cells)."""
+paper's method (one step), and for the shipped extended network (route distances, safe cells,
+and the scenario's deeper search for UAVs whose one-step choice is a trap)."""
 
 from __future__ import annotations
 

@@ -8,10 +8,10 @@ through the value network in one forward pass. Training, evaluation and the agen
 call this same code.
 
 With policy.lookahead_depth > 1 a UAV at risk of disconnection (weak now or about to be, and
-its best one-step move leaving no next move above T_s) searches deeper: its most promising
-first moves scored R1 + gamma * max_a2 [R2 + gamma * V(s2)] (and so on), which sees a jammed
-zone that no move within the turn limit leaves in time before the UAV turns into it. The
-paper's method stays the one-step lookahead it publishes.
+its best one-step move leaving no next move onto a connected level) searches deeper: its most
+promising first moves scored R1 + gamma * max_a2 [R2 + gamma * V(s2)] (and so on), which sees
+a jammed zone that no move within the turn limit leaves in time before the UAV turns into it.
+The paper's method stays the one-step lookahead it publishes.
 """
 
 from __future__ import annotations
@@ -260,11 +260,11 @@ class Expansion(NamedTuple):
 
 DEEP_SEARCH_LEAVES = 1 << 16  # leaves per forward pass of the deep search: bounds its memory
 # First moves a UAV at risk searches deeper: its DEEP_SEARCH_BEAM best by one step and its
-# DEEP_SEARCH_BEAM best escapes (moves after which some next move lands above T_s), so that an
-# escape one step ranks low, a full turn out of a trap, is always searched. Table I's settings,
-# perfect map, seeds 0 and 1, 400 episodes: all 46 first moves of every UAV weak now or about
-# to be (35 % of decisions) flew 98.28 % success and 0.91 % disconnection at a tenth of the
-# one-step decisions/s; this (3 % of decisions searched) 98.22 % and 0.85 %, at three quarters
+# DEEP_SEARCH_BEAM best escapes (moves after which some next move lands on a connected level),
+# so that an escape one step ranks low, a full turn out of a trap, is always searched. Table
+# I's settings, perfect map, seeds 0 and 1, 400 episodes: every first move of every UAV weak
+# now or about to be (36 % of decisions) flew 98.28 % success and 0.91 % disconnection at a
+# tenth of the one-step decisions/s; this (6 % of decisions searched) 98.21 % and 0.76 %
 # (docs/lookahead_depth.md).
 DEEP_SEARCH_BEAM = 4
 
@@ -300,6 +300,8 @@ class LookaheadPolicy:
             raise ValueError(f"lookahead_depth must be at least 1, not {self.depth}")
         # Levels under this are weak: below T_s, and the marginal band above it if there is one.
         self.weak_levels = min(2, scenario.channel.level_count - 1)
+        self._turn_cos, self._turn_sin = np.cos(self.actions.turns), np.sin(self.actions.turns)
+        self._step_length = self.actions.speeds * self.dt
         self.others_model = scenario.policy.others_model
         self.orca_time_horizon = scenario.policy.orca_time_horizon_s
 
@@ -418,21 +420,27 @@ class LookaheadPolicy:
     def escapes(self, position: np.ndarray, heading: np.ndarray, terminal: np.ndarray,
                 radio_map: RadioMap) -> np.ndarray:
         """Whether from ``position`` (N, B, 2), flying at ``heading`` (N, B), some next move
-        lands above T_s (N, B): levels only, no value. A move that ends the mission has no
-        next one and counts as an escape."""
-        speeds, headings = self.actions.candidates(heading)  # (N, B, A)
-        ends = position[..., None, :] + velocity_of(speeds, headings) * self.dt
+        lands on a connected level (N, B): levels only, no value. A move that ends the
+        mission has no next one and counts as an escape."""
+        # cos(h + turn) from cos h and sin h: the turns' own are fixed, and the trigonometry
+        # of every (move, next move) pair would cost more than the levels it looks up.
+        cos_h, sin_h = np.cos(heading)[..., None], np.sin(heading)[..., None]
+        ends = np.stack([cos_h * self._turn_cos - sin_h * self._turn_sin,
+                         sin_h * self._turn_cos + cos_h * self._turn_sin], axis=-1)
+        ends *= self._step_length[:, None]
+        ends += position[..., None, :]
         count, moves = heading.shape
         levels = radio_map.for_rows(np.repeat(np.arange(count), moves)).level_at(
             ends.reshape(count * moves, len(self.actions), 2))
-        return terminal | (levels > 0).any(axis=-1).reshape(count, moves)
+        connected = (levels >= self.weak_levels).any(axis=-1).reshape(count, moves)
+        return terminal | connected
 
     def at_risk(self, observation: Observation, expansion: Expansion, radio_map: RadioMap,
                 best: np.ndarray) -> np.ndarray:
         """UAVs (N,) whose decision a deeper search may change for the better: those on a weak
         level now or whose best one-step move ends on one, when that move leaves no next move
-        above T_s. A jammed zone can hold a trap that no move within the turn limit leaves in
-        time, which one step does not show."""
+        onto a connected level. A jammed zone can hold a trap that no move within the turn
+        limit leaves in time, which one step does not show."""
         landing = expansion.level[np.arange(len(observation)), best]
         weak = np.flatnonzero((observation.level < self.weak_levels)
                               | (landing < self.weak_levels))
