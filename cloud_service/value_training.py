@@ -313,9 +313,9 @@ def td_targets(
 def validate(scenario: Scenario, net: ValueNetwork, episodes: int, uavs: int) -> dict[str, float]:
     """Greedy lookahead on the true map, over the fixed validation episodes of each Table I
     jammer setting: the share of UAV-episodes ending in each outcome."""
-    # The lookahead the network is trained with: selecting checkpoints by a deeper search
-    # would score the search as much as the network.
-    policy = LookaheadPolicy(scenario, net, lookahead_depth=1)
+    # The lookahead the network is trained with: selecting checkpoints by the deployed
+    # planner would score the planner as much as the network.
+    policy = LookaheadPolicy(scenario, net, lookahead_depth=1, others_model="constant_velocity")
     outcomes = [
         run_episodes(scenario, LookaheadController(policy, perfect_maps(scenario)), episodes,
                      VALIDATION_SEED, setting, uavs).outcomes
@@ -507,8 +507,10 @@ def train(
         with log_path.open("w", newline="") as handle:
             csv.writer(handle).writerow(LOG_FIELDS)
 
-    # One step: the TD targets are one-step, and a deeper search would cost training 5-10x.
-    policy = LookaheadPolicy(scenario, net.inference(), shield=False, lookahead_depth=1)
+    # One step, the others at constant velocity: the lookahead the shipped networks were
+    # trained with (the TD targets are one-step, and a deeper search would cost training 5-10x).
+    policy = LookaheadPolicy(scenario, net.inference(), shield=False, lookahead_depth=1,
+                             others_model="constant_velocity")
     controller = LookaheadController(policy, maps, rng=rng)
     world = VectorWorld(scenario, config.envs, uavs)
     gamma = scenario.policy.gamma

@@ -11,7 +11,7 @@ With policy.lookahead_depth > 1 a UAV at risk of disconnection (weak now or abou
 its best one-step move leaving no next move onto a connected level) searches deeper: its most
 promising first moves scored R1 + gamma * max_a2 [R2 + gamma * V(s2)] (and so on), which sees
 a jammed zone that no move within the turn limit leaves in time before the UAV turns into it.
-The paper's method stays the one-step lookahead it publishes.
+The paper's method stays the one-step, constant-velocity lookahead it publishes.
 """
 
 from __future__ import annotations
@@ -271,11 +271,11 @@ DEEP_SEARCH_BEAM = 4
 
 class LookaheadPolicy:
     def __init__(self, scenario: Scenario, value_net: ValueNetwork, shield: bool = True,
-                 lookahead_depth: int | None = None):
+                 lookahead_depth: int | None = None, others_model: str | None = None):
         """``shield=False`` flies without the method's safe cells even if it has them: how
         training flies, so the value network learns what a collision costs.
-        ``lookahead_depth`` overrides the scenario's policy.lookahead_depth (which the
-        paper's method never reads)."""
+        ``lookahead_depth`` and ``others_model`` override the scenario's policy settings
+        (which the paper's method never reads)."""
         self.scenario = scenario
         self.actions = ActionSet(scenario)
         self.rewards = RewardModel(scenario)
@@ -291,18 +291,22 @@ class LookaheadPolicy:
                                f"scenario gives {wanted}")
         self.disconnection_limit = scenario.timing.disconnection_limit_steps
         self.value_net = value_net
-        # The paper's method is the one-step lookahead it publishes: the scenario's deeper
-        # search belongs to the methods that extend it.
+        # The paper's method is the one-step lookahead it publishes, the others flying on at
+        # their observed velocity: the scenario's deeper search and reciprocal model belong to
+        # the methods that extend it.
+        paper = self.options == PAPER_METHOD
         if lookahead_depth is None:
-            lookahead_depth = 1 if self.options == PAPER_METHOD else scenario.policy.lookahead_depth
+            lookahead_depth = 1 if paper else scenario.policy.lookahead_depth
+        if others_model is None:
+            others_model = "constant_velocity" if paper else scenario.policy.others_model
         self.depth = lookahead_depth
+        self.others_model = others_model
         if self.depth < 1:
             raise ValueError(f"lookahead_depth must be at least 1, not {self.depth}")
         # Levels under this are weak: below T_s, and the marginal band above it if there is one.
         self.weak_levels = min(2, scenario.channel.level_count - 1)
         self._turn_cos, self._turn_sin = np.cos(self.actions.turns), np.sin(self.actions.turns)
         self._step_length = self.actions.speeds * self.dt
-        self.others_model = scenario.policy.others_model
         self.orca_time_horizon = scenario.policy.orca_time_horizon_s
 
     def others_velocity(self, observation: Observation) -> np.ndarray:

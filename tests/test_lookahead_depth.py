@@ -127,19 +127,23 @@ ONE_STEP_ACTIONS = [28, 0, 45, 27, 45, 44, 38, 28, 37, 0, 38, 43, 2, 8, 36, 10, 
 
 def test_depth_one_decides_as_the_one_step_lookahead_did(fleet_case):
     scenario, network, fleet, radio_map = fleet_case
-    policy = LookaheadPolicy(scenario, network, lookahead_depth=1)
+    policy = LookaheadPolicy(scenario, network, lookahead_depth=1,
+                             others_model="constant_velocity")
     np.testing.assert_array_equal(policy.decide(fleet, radio_map).action, ONE_STEP_ACTIONS)
 
 
-def test_the_papers_method_stays_one_step_where_the_scenario_searches_deeper(fleet_case):
+def test_the_papers_method_flies_as_published_whatever_the_scenario_says(fleet_case):
     scenario, _, fleet, radio_map = fleet_case
-    assert scenario.policy.lookahead_depth == 2  # the shipped default
+    # The shipped defaults, which the paper's method must not read.
+    assert scenario.policy.lookahead_depth == 2
+    assert scenario.policy.others_model == "reciprocal"
     paper = scripted(ProjectionValue, joint_state_size(scenario), {})
-    one_step = LookaheadPolicy(scenario, paper, lookahead_depth=1).decide(fleet, radio_map)
+    published = LookaheadPolicy(scenario, paper, lookahead_depth=1,
+                                others_model="constant_velocity").decide(fleet, radio_map)
     default = LookaheadPolicy(scenario, paper).decide(fleet, radio_map)
     deeper = LookaheadPolicy(scenario, paper, lookahead_depth=2).decide(fleet, radio_map)
-    np.testing.assert_array_equal(default.action, one_step.action)
-    assert np.any(deeper.action != one_step.action)  # the override still searches
+    np.testing.assert_array_equal(default.action, published.action)
+    assert np.any(deeper.action != published.action)  # the override still searches
 
 
 def test_only_uavs_at_risk_decide_differently_at_depth_two(fleet_case):

@@ -122,7 +122,8 @@ def test_constant_velocity_decides_as_before_and_reciprocal_does_not():
 
 def test_the_reciprocal_model_moves_the_others_in_the_expansion(scenario):
     reciprocal = variant(scenario, policy={"others_model": "reciprocal"})
-    network = scripted(ProjectionValue, joint_state_size(scenario), {})
+    method = EXTENDED_METHOD._replace(route_distance=False)
+    network = scripted(ProjectionValue, joint_state_size(scenario, method), method._asdict())
     observation = pair_observation([[0.0, 0.0], [10.0, 0.0]], [[5.0, 0.0], [-5.0, 0.0]])
     expansion = LookaheadPolicy(reciprocal, network).expand(observation, ConnectedMap())
     expected = reciprocal_velocities(observation, scenario.policy.orca_time_horizon_s,
@@ -132,6 +133,6 @@ def test_the_reciprocal_model_moves_the_others_in_the_expansion(scenario):
 
 
 def test_an_unknown_others_model_is_refused_by_name(tmp_path):
-    path = write_variant(tmp_path, "lookahead_depth = 2", 'others_model = "telepathic"')
+    path = write_variant(tmp_path, 'others_model = "reciprocal"', 'others_model = "telepathic"')
     with pytest.raises(ScenarioError, match="others_model"):
         load_scenario(path)
