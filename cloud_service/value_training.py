@@ -53,7 +53,7 @@ from shared.features import METHODS, MethodOptions, joint_state_size, observatio
 from shared.networks import ValueNetwork, from_bytes, save_network, to_bytes
 from shared.outcomes import Outcome
 from shared.paper import TABLE_I_JAMMERS
-from shared.policy import LookaheadPolicy
+from shared.policy import PUBLISHED_LOOKAHEAD, LookaheadPolicy
 from shared.radio import JammerParams
 from shared.resources import resident_mib
 from shared.scenario import Scenario
@@ -315,7 +315,7 @@ def validate(scenario: Scenario, net: ValueNetwork, episodes: int, uavs: int) ->
     jammer setting: the share of UAV-episodes ending in each outcome."""
     # The lookahead the network is trained with: selecting checkpoints by the deployed
     # planner would score the planner as much as the network.
-    policy = LookaheadPolicy(scenario, net, lookahead_depth=1, others_model="constant_velocity")
+    policy = LookaheadPolicy(scenario, net, **PUBLISHED_LOOKAHEAD)
     outcomes = [
         run_episodes(scenario, LookaheadController(policy, perfect_maps(scenario)), episodes,
                      VALIDATION_SEED, setting, uavs).outcomes
@@ -507,10 +507,9 @@ def train(
         with log_path.open("w", newline="") as handle:
             csv.writer(handle).writerow(LOG_FIELDS)
 
-    # One step, the others at constant velocity: the lookahead the shipped networks were
-    # trained with (the TD targets are one-step, and a deeper search would cost training 5-10x).
-    policy = LookaheadPolicy(scenario, net.inference(), shield=False, lookahead_depth=1,
-                             others_model="constant_velocity")
+    # The lookahead the shipped networks were trained with (the TD targets are one-step, and
+    # a deeper search would cost training 5-10x).
+    policy = LookaheadPolicy(scenario, net.inference(), shield=False, **PUBLISHED_LOOKAHEAD)
     controller = LookaheadController(policy, maps, rng=rng)
     world = VectorWorld(scenario, config.envs, uavs)
     gamma = scenario.policy.gamma

@@ -258,6 +258,9 @@ class Expansion(NamedTuple):
         return Expansion(*(field[rows] for field in self))
 
 
+# The paper's lookahead: one step, the others flying on at their observed velocity. The
+# paper's method always flies it, and training flies it whatever the scenario deploys.
+PUBLISHED_LOOKAHEAD = {"lookahead_depth": 1, "others_model": "constant_velocity"}
 DEEP_SEARCH_LEAVES = 1 << 16  # leaves per forward pass of the deep search: bounds its memory
 # First moves a UAV at risk searches deeper: its DEEP_SEARCH_BEAM best by one step and its
 # DEEP_SEARCH_BEAM best escapes (moves after which some next move lands on a connected level),
@@ -291,22 +294,19 @@ class LookaheadPolicy:
                                f"scenario gives {wanted}")
         self.disconnection_limit = scenario.timing.disconnection_limit_steps
         self.value_net = value_net
-        # The paper's method is the one-step lookahead it publishes, the others flying on at
-        # their observed velocity: the scenario's deeper search and reciprocal model belong to
-        # the methods that extend it.
-        paper = self.options == PAPER_METHOD
+        # The scenario's deeper search and reciprocal model belong to the methods that extend
+        # the paper's; the paper's method flies the lookahead it publishes.
+        published = PUBLISHED_LOOKAHEAD if self.options == PAPER_METHOD else {}
         if lookahead_depth is None:
-            lookahead_depth = 1 if paper else scenario.policy.lookahead_depth
+            lookahead_depth = published.get("lookahead_depth", scenario.policy.lookahead_depth)
         if others_model is None:
-            others_model = "constant_velocity" if paper else scenario.policy.others_model
+            others_model = published.get("others_model", scenario.policy.others_model)
         self.depth = lookahead_depth
         self.others_model = others_model
         if self.depth < 1:
             raise ValueError(f"lookahead_depth must be at least 1, not {self.depth}")
         # Levels under this are weak: below T_s, and the marginal band above it if there is one.
         self.weak_levels = min(2, scenario.channel.level_count - 1)
-        self._turn_cos, self._turn_sin = np.cos(self.actions.turns), np.sin(self.actions.turns)
-        self._step_length = self.actions.speeds * self.dt
         self.orca_time_horizon = scenario.policy.orca_time_horizon_s
 
     def others_velocity(self, observation: Observation) -> np.ndarray:
@@ -426,13 +426,8 @@ class LookaheadPolicy:
         """Whether from ``position`` (N, B, 2), flying at ``heading`` (N, B), some next move
         lands on a connected level (N, B): levels only, no value. A move that ends the
         mission has no next one and counts as an escape."""
-        # cos(h + turn) from cos h and sin h: the turns' own are fixed, and the trigonometry
-        # of every (move, next move) pair would cost more than the levels it looks up.
-        cos_h, sin_h = np.cos(heading)[..., None], np.sin(heading)[..., None]
-        ends = np.stack([cos_h * self._turn_cos - sin_h * self._turn_sin,
-                         sin_h * self._turn_cos + cos_h * self._turn_sin], axis=-1)
-        ends *= self._step_length[:, None]
-        ends += position[..., None, :]
+        speeds, headings = self.actions.candidates(heading)  # (N, B, A)
+        ends = position[..., None, :] + velocity_of(speeds, headings) * self.dt
         count, moves = heading.shape
         levels = radio_map.for_rows(np.repeat(np.arange(count), moves)).level_at(
             ends.reshape(count * moves, len(self.actions), 2))
