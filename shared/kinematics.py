@@ -37,15 +37,29 @@ class ActionSet:
         speed_grid, turn_grid = np.meshgrid(fractions * self.max_speed, turns, indexing="ij")
         self.speeds = np.concatenate([[0.0], speed_grid.ravel()])
         self.turns = np.concatenate([[0.0], turn_grid.ravel()])
+        # The actions share a few heading changes (hovering's among them): turning and its
+        # trigonometry are done once per distinct change, then spread over the speeds.
+        self._distinct_turns, self._turn_of_action = np.unique(self.turns, return_inverse=True)
 
     def __len__(self) -> int:
         return self.speeds.shape[0]
 
     def candidates(self, heading: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Speeds and headings of every action for UAVs at ``heading`` (...,): shape (..., A)."""
+        speeds, distinct = self._distinct_headings(heading)
+        return speeds, distinct[..., self._turn_of_action]
+
+    def moves(self, heading: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``candidates`` and the velocity (..., A, 2) of each: ``velocity_of`` them, to the
+        bit, at a fraction of its cost."""
+        speeds, distinct = self._distinct_headings(heading)
+        direction = velocity_of(np.ones(()), distinct)[..., self._turn_of_action, :]
+        return speeds, distinct[..., self._turn_of_action], speeds[..., None] * direction
+
+    def _distinct_headings(self, heading: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         heading = np.asarray(heading, dtype=np.float64)[..., None]
         speeds = np.broadcast_to(self.speeds, heading.shape[:-1] + self.speeds.shape)
-        return speeds, wrap_angle(heading + self.turns)
+        return speeds, wrap_angle(heading + self._distinct_turns)
 
     def clip(
         self, speed: np.ndarray, heading: np.ndarray, current_heading: np.ndarray

@@ -31,7 +31,7 @@ from shared.features import (
     joint_state,
     joint_state_size,
 )
-from shared.kinematics import ActionSet, closest_approach, velocity_of
+from shared.kinematics import ActionSet, closest_approach
 from shared.measurements import predict_levels, scenario_features
 from shared.networks import SinrMapNetwork, ValueNetwork, WeightsError
 from shared.orca import orca_velocities
@@ -154,7 +154,8 @@ class RasterMap:
     def level_at(self, xy: np.ndarray) -> np.ndarray:
         row, col = self.first.indices(xy)
         which = self.which.reshape(self.which.shape + (1,) * (xy.ndim - 2))
-        return self.stack[which, row, col]
+        _, rows, cols = self.stack.shape
+        return self.stack.ravel()[(which * rows + row) * cols + col]  # one index: 2x faster
 
     def for_rows(self, rows: np.ndarray) -> RasterMap:
         subset = copy.copy(self)  # the rasters and their route caches are shared, not copied
@@ -172,6 +173,8 @@ class RasterMap:
 
 
 CLOSING_TOLERANCE_M = 0.01  # inside the margin, closing by less than this still counts as holding
+# Far above the rounding of a gap bound over the area, far below anything R_c can tell apart.
+GAP_SLACK_M = 1e-6
 
 
 def inside_safe_cells(
@@ -190,11 +193,15 @@ def inside_safe_cells(
     toward = others_position - position[:, None]  # (N, M, 2)
     distance = np.linalg.norm(toward, axis=-1)
     unit = toward / np.maximum(distance, 1e-12)[..., None]
-    advance = np.einsum("nak,nmk->nam", end - position[:, None], unit)
+    move = end - position[:, None]  # (N, A, 2)
+    # The advance toward each other (N, M, A), written out: an einsum over two coordinates
+    # costs twice as much.
+    advance = move[:, None, :, 0] * unit[..., 0, None]
+    advance += move[:, None, :, 1] * unit[..., 1, None]
     limit = distance / 2 - radius[:, None] - CELL_CLEARANCE_M
-    leaves = (advance > limit[:, None]) & others_present[:, None]
-    still = np.all(end == position[:, None], axis=-1)
-    return still | ~leaves.any(axis=-1)
+    leaves = ((advance > limit[..., None]) & others_present[..., None]).any(axis=1)
+    still = (move[..., 0] == 0) & (move[..., 1] == 0)
+    return still | ~leaves
 
 
 def reciprocal_velocities(observation: Observation, time_horizon: float,
@@ -330,11 +337,38 @@ class LookaheadPolicy:
                               axis=-1) - observation.radius[:, None] - observation.others_radius)
         return np.clip(now - CLOSING_TOLERANCE_M, 0.0, margin)
 
+    def _gaps(self, observation: Observation, velocity: np.ndarray,
+              others_velocity: np.ndarray) -> np.ndarray:
+        """The smallest gap (N, A) to the others over each action's step, less the margins.
+        R_c and collision read a gap only under the discomfort distance, and no step closes
+        a gap by more than both UAVs fly in it: the pairs that cannot come that close count
+        as infinitely far, and only the UAVs with a nearer other are computed."""
+        margin = self._margins(observation)
+        relative = observation.others_position - observation.position[:, None]
+        reach = (self.actions.max_speed + np.hypot(others_velocity[..., 0],
+                                                   others_velocity[..., 1])) * self.dt
+        nearest = (np.hypot(relative[..., 0], relative[..., 1]) - reach - margin
+                   - observation.radius[:, None] - observation.others_radius)
+        near = observation.others_present & (nearest < self.rewards.discomfort + GAP_SLACK_M)
+        rows = np.flatnonzero(near.any(axis=1))
+        gap = np.full(velocity.shape[:2], np.inf)
+        gap[rows] = smallest_gaps(
+            observation.position[rows, None],
+            velocity[rows],
+            observation.radius[rows, None],
+            observation.others_position[rows, None],
+            others_velocity[rows, None],
+            observation.others_radius[rows, None],
+            near[rows, None],
+            self.dt,
+            margin[rows, None],
+        )
+        return gap
+
     def expand(self, observation: Observation, radio_map: RadioMap) -> Expansion:
         """Each candidate action of each UAV of ``observation`` (its J_n nearest others
         only) one step ahead, others propagated by the scenario's others_model."""
-        speeds, headings = self.actions.candidates(observation.heading)  # (N, A)
-        velocity = velocity_of(speeds, headings)  # (N, A, 2)
+        speeds, headings, velocity = self.actions.moves(observation.heading)  # (N, A, ...)
         position = observation.position[:, None, :]
         destination = observation.destination[:, None, :]
         arrived = closest_approach(position - destination, velocity, self.dt) <= self.tolerance
@@ -342,17 +376,7 @@ class LookaheadPolicy:
 
         others_velocity = self.others_velocity(observation)
         others_next = observation.others_position + others_velocity * self.dt
-        gap = smallest_gaps(
-            position,
-            velocity,
-            observation.radius[:, None],
-            observation.others_position[:, None],
-            others_velocity[:, None],
-            observation.others_radius[:, None],
-            observation.others_present[:, None],
-            self.dt,
-            self._margins(observation)[:, None],
-        )
+        gap = self._gaps(observation, velocity, others_velocity)
         level = radio_map.level_at(next_position)
         below = np.where(level == 0, observation.below_steps[:, None] + 1, 0)
         check_now = self.rewards.is_check_step(observation.step)[:, None]
@@ -426,8 +450,7 @@ class LookaheadPolicy:
         """Whether from ``position`` (N, B, 2), flying at ``heading`` (N, B), some next move
         lands on a connected level (N, B): levels only, no value. A move that ends the
         mission has no next one and counts as an escape."""
-        speeds, headings = self.actions.candidates(heading)  # (N, B, A)
-        ends = position[..., None, :] + velocity_of(speeds, headings) * self.dt
+        ends = position[..., None, :] + self.actions.moves(heading)[2] * self.dt  # (N, B, A, 2)
         count, moves = heading.shape
         levels = radio_map.for_rows(np.repeat(np.arange(count), moves)).level_at(
             ends.reshape(count * moves, len(self.actions), 2))

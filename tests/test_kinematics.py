@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from shared.kinematics import ActionSet, closest_approach, wrap_angle
+from shared.kinematics import ActionSet, closest_approach, velocity_of, wrap_angle
 
 angle = st.floats(-10, 10, allow_nan=False)
 
@@ -28,6 +28,19 @@ def test_every_candidate_is_permissible(scenario, heading):
     speeds, headings = actions.candidates(np.array(heading))
     assert np.all((speeds >= 0) & (speeds <= scenario.uav.max_speed_mps + 1e-12))
     assert np.all(np.abs(wrap_angle(headings - heading)) <= actions.max_turn + 1e-9)
+
+
+@settings(max_examples=100, deadline=None)
+@given(headings=st.lists(angle, min_size=1, max_size=12))
+def test_moves_are_the_candidates_velocities_to_the_bit(scenario, headings):
+    actions = ActionSet(scenario)
+    heading = np.array(headings).reshape(-1, 1)
+    speeds, turned, velocity = actions.moves(heading)
+    expected_speeds, expected_headings = actions.candidates(heading)
+    assert np.array_equal(speeds, expected_speeds)
+    assert np.array_equal(turned, wrap_angle(heading[..., None] + actions.turns))
+    assert np.array_equal(turned, expected_headings)
+    assert np.array_equal(velocity, velocity_of(speeds, turned))
 
 
 @settings(max_examples=300, deadline=None)

@@ -16,6 +16,7 @@ from shared.networks import ValueNetwork, load_network, value_architecture
 from shared.outcomes import Outcome
 from shared.policy import LookaheadPolicy, TrueMap, inside_safe_cells
 from shared.radio import JammerParams, RadioModel
+from shared.rewards import smallest_gaps
 from shared.shipped import EXTENDED_VALUE_NET
 from world_sim.core import VectorWorld, episode_seed
 
@@ -231,6 +232,33 @@ def test_a_crowd_keeping_to_its_cells_has_no_collision(scenario):
         collisions[safe] = int(np.count_nonzero(world.status == Outcome.COLLISION))
     assert collisions[False] > 0
     assert collisions[True] == 0
+
+
+def test_gaps_left_out_are_those_no_reward_reads(scenario):
+    """A crowd in a 40 m square flying every action: the lookahead's gaps agree with every
+    pair's closest approach wherever R_c or a collision reads them (under the discomfort
+    distance), and the pairs it leaves out are farther than that."""
+    policy = LookaheadPolicy(scenario, untrained(joint_state_size(scenario, EXTENDED_METHOD),
+                                                 EXTENDED_METHOD._asdict()))
+    rng = np.random.default_rng(5)
+    envs, uavs = 50, 6
+    fleet = Observation.of_fleet(
+        rng.uniform(-20, 20, (envs, uavs, 2)), rng.uniform(-5, 5, (envs, uavs, 2)),
+        rng.uniform(-3, 3, (envs, uavs)), rng.uniform(-40, 40, (envs, uavs, 2)),
+        rng.uniform(0.5, 1.5, (envs, uavs)), np.full((envs, uavs), 5.0),
+        np.full((envs, uavs), 2), np.zeros((envs, uavs)), rng.random((envs, uavs)) < 0.9,
+        np.zeros(envs, dtype=int),
+    )
+    _, _, velocity = policy.actions.moves(fleet.heading)
+    got = policy._gaps(fleet, velocity, fleet.others_velocity)
+    every_pair = smallest_gaps(fleet.position[:, None], velocity, fleet.radius[:, None],
+                               fleet.others_position[:, None], fleet.others_velocity[:, None],
+                               fleet.others_radius[:, None], fleet.others_present[:, None],
+                               scenario.timing.step_s, policy._margins(fleet)[:, None])
+    read = every_pair < scenario.rewards.discomfort_distance_m
+    assert read.any() and (~read).any() and np.isinf(got).any()
+    assert np.array_equal(got[read], every_pair[read])
+    assert np.all(got[~read] >= scenario.rewards.discomfort_distance_m)
 
 
 class TorchForward(ValueNetwork):
