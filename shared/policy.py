@@ -445,17 +445,20 @@ class LookaheadPolicy:
             onward, deeper, onward_map, depth - 1, np.ones_like(deeper.terminal)).max(axis=1)
         return self.scores(expansion, best_next)
 
-    def escapes(self, position: np.ndarray, heading: np.ndarray, terminal: np.ndarray,
-                radio_map: RadioMap) -> np.ndarray:
-        """Whether from ``position`` (N, B, 2), flying at ``heading`` (N, B), some next move
-        lands on a connected level (N, B): levels only, no value. A move that ends the
-        mission has no next one and counts as an escape."""
-        ends = position[..., None, :] + self.actions.moves(heading)[2] * self.dt  # (N, B, A, 2)
-        count, moves = heading.shape
-        levels = radio_map.for_rows(np.repeat(np.arange(count), moves)).level_at(
-            ends.reshape(count * moves, len(self.actions), 2))
-        connected = (levels >= self.weak_levels).any(axis=-1).reshape(count, moves)
-        return terminal | connected
+    def escapes(self, position: np.ndarray, heading: np.ndarray, level: np.ndarray,
+                terminal: np.ndarray, radio_map: RadioMap) -> np.ndarray:
+        """Whether from ``position`` (N, B, 2), flying at ``heading`` and on ``level`` (N, B),
+        some next move lands on a connected level (N, B): levels only, no value. A move that
+        ends the mission (``terminal``) has no next one and counts as an escape; one that
+        lands on a connected level escapes by hovering there."""
+        escape = terminal | (level >= self.weak_levels)
+        uav, move = np.nonzero(~escape)
+        if uav.size:
+            ends = (position[uav, move, None]
+                    + self.actions.moves(heading[uav, move])[2] * self.dt)  # (P, A, 2)
+            levels = radio_map.for_rows(uav).level_at(ends)
+            escape[uav, move] = (levels >= self.weak_levels).any(axis=-1)
+        return escape
 
     def at_risk(self, observation: Observation, expansion: Expansion, radio_map: RadioMap,
                 best: np.ndarray) -> np.ndarray:
@@ -470,8 +473,8 @@ class LookaheadPolicy:
         risk = np.zeros(len(observation), dtype=bool)
         risk[weak] = ~self.escapes(
             np.take_along_axis(expansion.position[weak], pick[..., None], axis=1),
-            np.take_along_axis(expansion.heading[weak], pick, axis=1),
-            np.take_along_axis(expansion.terminal[weak], pick, axis=1),
+            *(np.take_along_axis(getattr(expansion, name)[weak], pick, axis=1)
+              for name in ("heading", "level", "terminal")),
             radio_map.for_rows(weak))[:, 0]
         return risk
 
@@ -479,8 +482,8 @@ class LookaheadPolicy:
                     allowed: np.ndarray) -> np.ndarray:
         """The first moves (N, A) the deep search expands: the DEEP_SEARCH_BEAM best by one
         step and the DEEP_SEARCH_BEAM best escapes, of the ``allowed`` ones."""
-        escape = self.escapes(expansion.position, expansion.heading, expansion.terminal,
-                              radio_map)
+        escape = self.escapes(expansion.position, expansion.heading, expansion.level,
+                              expansion.terminal, radio_map)
         searched = np.zeros_like(allowed)
         for candidates in (score, np.where(escape, score, -np.inf)):
             beam = np.argsort(-candidates, axis=1, kind="stable")[:, :DEEP_SEARCH_BEAM]
