@@ -230,11 +230,6 @@ class RetrainConfig:
     min_tries: int = 8
     # Mini-batches of 200 (~0.8 s on one core) per fit.
     steps: int = 1000
-    # ... and prior points per map corrected by a converged estimate: a 2 W jammer's hole is
-    # wider than the training range's, and 1,000 steps on 4,000 points left the published
-    # raster at 96.9-97.2 % (the prior's 99.3 %), 1-1.5 % of it covered where it is not.
-    estimate_steps: int = 2000
-    estimate_prior_points: int = 8000
     # ... per provisional map: a stopgap, out in a fraction of the time, that the next try
     # replaces.
     provisional_steps: int = 250
@@ -466,14 +461,8 @@ class OnlineSinrMapper:
         config = self.retrain
         features, levels = data.features, data.levels
         start_from, sigma_db = self._network, 0.0
-        # The estimate behind the map, when one converged; a provisional map has none.
-        provisional = isinstance(jammer, JammerHypotheses)
-        estimate = None if provisional else jammer
-        steps = (config.provisional_steps if provisional
-                 else config.estimate_steps if estimate is not None else config.steps)
         if jammer is not None:
-            prior_xy = self._prior_positions(config.estimate_prior_points if estimate is not None
-                                             else config.prior_points)
+            prior_xy = self._prior_positions()
             prior_features = scenario_features(self.scenario, prior_xy)
             sigma_db = self._shadowing_sigma(prior_xy)
             prior_levels = corrected_levels(self.scenario, self._base_levels, jammer,
@@ -481,13 +470,16 @@ class OnlineSinrMapper:
             features = np.concatenate([features, prior_features])
             levels = np.concatenate([levels, prior_levels])
             start_from = self._base
+        # The estimate behind the map, when one converged; a provisional map has none.
+        provisional = isinstance(jammer, JammerHypotheses)
+        estimate = None if provisional else jammer
         # Imported here, on the first retraining: torch takes seconds to load, and the cloud
         # serves weights from its start (the cloud process loads it meanwhile).
         from cloud_service.sinr_training import train_sinr_map
 
         result = train_sinr_map(
             features, levels, self.level_count, network=start_from,
-            steps=steps,
+            steps=config.provisional_steps if provisional else config.steps,
             max_seconds=config.max_seconds, target_accuracy=config.target_accuracy,
             holdout=config.holdout, seed=self._seed + self._version + 1)
         change.fitted_at = len(data)
@@ -523,10 +515,10 @@ class OnlineSinrMapper:
         self._change = None
         self.detector.reset()
 
-    def _prior_positions(self, count: int | None = None) -> np.ndarray:
+    def _prior_positions(self) -> np.ndarray:
         """Where the estimate-corrected map labels the area for the DNN (a fresh draw for
-        each map version): ``count`` points, by default ``retrain.prior_points``."""
-        return uniform_positions(self.scenario, count or self.retrain.prior_points,
+        each map version)."""
+        return uniform_positions(self.scenario, self.retrain.prior_points,
                                  np.random.default_rng(self._seed + self._version))
 
     def _shadowing_sigma(self, xy: np.ndarray) -> float:
