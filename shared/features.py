@@ -222,25 +222,27 @@ def joint_state(
     count = others_present.shape[-1]
     if count > observed_uavs:
         raise ValueError("pass at most J_n others: see Observation.nearest_neighbours")
-    # All the others' blocks at once (..., J_n, width): a view of their columns.
-    blocks = out[..., len(OWN_FEATURES) : level_column].reshape(
-        batch + (observed_uavs, len(OTHER_FEATURES)))
-    blocks[..., count:, 0] = -_ABSENT_DISTANCE
-    blocks[..., count:, 4] = _ABSENT_DISTANCE
-    blocks[..., count:, 5] = np.pi
-    seen = blocks[..., :count, :]
-    cos, sin = cos[..., None], sin[..., None]
-    rx = others_position[..., 0] - position[..., None, 0]
-    ry = others_position[..., 1] - position[..., None, 1]
-    ovx, ovy = others_velocity[..., 0], others_velocity[..., 1]
-    px = np.where(others_present, rx * cos + ry * sin, -_ABSENT_DISTANCE)
-    py = np.where(others_present, ry * cos - rx * sin, 0.0)
-    seen[..., 0] = px
-    seen[..., 1] = py
-    seen[..., 2] = np.where(others_present, ovx * cos + ovy * sin, 0.0)
-    seen[..., 3] = np.where(others_present, ovy * cos - ovx * sin, 0.0)
-    seen[..., 4] = np.hypot(px, py)
-    seen[..., 5] = np.arctan2(py, px)
+    width = len(OTHER_FEATURES)
+    for k in range(observed_uavs):
+        column = len(OWN_FEATURES) + k * width
+        block = out[..., column : column + width]
+        if k >= count:
+            block[..., 0] = -_ABSENT_DISTANCE
+            block[..., 4] = _ABSENT_DISTANCE
+            block[..., 5] = np.pi
+            continue
+        present = others_present[..., k]
+        rx = others_position[..., k, 0] - position[..., 0]
+        ry = others_position[..., k, 1] - position[..., 1]
+        ovx, ovy = others_velocity[..., k, 0], others_velocity[..., k, 1]
+        px = np.where(present, rx * cos + ry * sin, -_ABSENT_DISTANCE)
+        py = np.where(present, ry * cos - rx * sin, 0.0)
+        block[..., 0] = px
+        block[..., 1] = py
+        block[..., 2] = np.where(present, ovx * cos + ovy * sin, 0.0)
+        block[..., 3] = np.where(present, ovy * cos - ovx * sin, 0.0)
+        block[..., 4] = np.hypot(px, py)
+        block[..., 5] = np.arctan2(py, px)
     out[..., level_column] = level
     # Extended method: how long the UAV has been disconnected (tells a harmless gap from a
     # fatal one) and how far the destination is along the map's connected route.
