@@ -60,8 +60,8 @@ REPORT_SIGMA_DB = 1.2
 # these (maximum likelihood); whether it converged is decided at REPORT_SIGMA_DB, and so are
 # the hypotheses of a provisional map (at 0.3 dB a quiet sky's exact reports showed a jammer).
 # An exact receiver (icc2021) read at 1.2 dB pulls the power low on the UAVs' paths, which
-# hug the jammed zone's edge: 1.63-1.78 W for a 2 W jammer, 0.78 W for 1 W (at 0.3 dB,
-# 1.94 W from the same uploads); icc2021-shadowed's uploads choose 1.2 dB.
+# hug the jammed zone's edge: about 1.7 W for a 2 W jammer, 0.8 W for 1 W (1.95 W and 0.98 W
+# refitted, BENCHMARKS.md); icc2021-shadowed's uploads choose 1.2 dB.
 REPORT_SIGMA_CHOICES_DB = (0.3, 0.6, REPORT_SIGMA_DB)
 OUTLIER_SHARE = 0.01  # reports that may contradict the model (a deep shadow, a map error)
 INDEPENDENT_SPACING_M = 3.0
