@@ -203,9 +203,10 @@ def joint_state(
     goal_distance = np.hypot(to_goal[..., 0], to_goal[..., 1])
     batch = goal_distance.shape
     # The frame's +x axis is the unit vector to the goal (any axis at the goal itself).
-    safe = np.where(goal_distance > 0, goal_distance, 1.0)
-    cos = np.where(goal_distance > 0, to_goal[..., 0] / safe, 1.0)
-    sin = np.where(goal_distance > 0, to_goal[..., 1] / safe, 0.0)
+    away = goal_distance > 0
+    safe = np.where(away, goal_distance, 1.0)
+    cos = np.where(away, to_goal[..., 0] / safe, 1.0)
+    sin = np.where(away, to_goal[..., 1] / safe, 0.0)
     extras = [column for column in (below_steps, route_distance) if column is not None]
     level_column = len(OWN_FEATURES) + len(OTHER_FEATURES) * observed_uavs
     size = level_column + 1 + len(extras)

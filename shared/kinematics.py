@@ -10,6 +10,12 @@ import numpy as np
 from shared.scenario import Scenario
 
 
+def clamp(values: np.ndarray, low: float, high: float) -> np.ndarray:
+    """``np.clip(values, low, high)`` (NaN stays NaN) without its wrapper's checks, which cost
+    more than the clipping on the lookahead's small arrays."""
+    return np.minimum(np.maximum(values, low), high)
+
+
 def wrap_angle(angle: np.ndarray) -> np.ndarray:
     """Angle(s) wrapped to [-pi, pi)."""
     return (np.asarray(angle) + math.pi) % (2.0 * math.pi) - math.pi
@@ -53,7 +59,7 @@ class ActionSet:
         """``candidates`` and the velocity (..., A, 2) of each: ``velocity_of`` them, to the
         bit, at a fraction of its cost."""
         speeds, distinct = self._distinct_headings(heading)
-        direction = velocity_of(np.ones(()), distinct)[..., self._turn_of_action, :]
+        direction = direction_of(distinct)[..., self._turn_of_action, :]
         return speeds, distinct[..., self._turn_of_action], speeds[..., None] * direction
 
     def _distinct_headings(self, heading: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -76,8 +82,13 @@ class ActionSet:
         return speed, new_heading
 
 
+def direction_of(heading: np.ndarray) -> np.ndarray:
+    """Unit vectors (..., 2) along ``heading`` (...,)."""
+    return np.stack([np.cos(heading), np.sin(heading)], axis=-1)
+
+
 def velocity_of(speed: np.ndarray, heading: np.ndarray) -> np.ndarray:
-    return np.stack([speed * np.cos(heading), speed * np.sin(heading)], axis=-1)
+    return np.asarray(speed)[..., None] * direction_of(heading)
 
 
 def closest_approach(
@@ -91,7 +102,7 @@ def closest_approach(
     vx, vy = relative_velocity[..., 0], relative_velocity[..., 1]
     speed_sq = vx * vx + vy * vy
     toward = -(px * vx + py * vy)
-    time = np.clip(
+    time = clamp(
         np.divide(toward, speed_sq, out=np.zeros_like(toward), where=speed_sq > 0), 0.0, duration
     )
     return np.hypot(px + vx * time, py + vy * time)

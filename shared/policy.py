@@ -31,7 +31,7 @@ from shared.features import (
     joint_state,
     joint_state_size,
 )
-from shared.kinematics import ActionSet, closest_approach
+from shared.kinematics import ActionSet, clamp, closest_approach
 from shared.measurements import predict_levels, scenario_features
 from shared.networks import SinrMapNetwork, ValueNetwork, WeightsError
 from shared.orca import orca_velocities
@@ -105,7 +105,7 @@ class LevelRaster:
         rows, cols = self.levels.shape[-2:]
         col = np.rint((xy[..., 0] - self.x0) / self.spacing).astype(np.int64)
         row = np.rint((xy[..., 1] - self.y0) / self.spacing).astype(np.int64)
-        return np.clip(row, 0, rows - 1), np.clip(col, 0, cols - 1)
+        return clamp(row, 0, rows - 1), clamp(col, 0, cols - 1)
 
     def level_at(self, xy: np.ndarray) -> np.ndarray:
         return self.levels[self.indices(xy)]
@@ -335,7 +335,7 @@ class LookaheadPolicy:
             return np.zeros_like(observation.others_radius)
         now = (np.linalg.norm(observation.others_position - observation.position[:, None],
                               axis=-1) - observation.radius[:, None] - observation.others_radius)
-        return np.clip(now - CLOSING_TOLERANCE_M, 0.0, margin)
+        return clamp(now - CLOSING_TOLERANCE_M, 0.0, margin)
 
     def _gaps(self, observation: Observation, velocity: np.ndarray,
               others_velocity: np.ndarray) -> np.ndarray:
@@ -469,12 +469,11 @@ class LookaheadPolicy:
         landing = expansion.level[np.arange(len(observation)), best]
         weak = np.flatnonzero((observation.level < self.weak_levels)
                               | (landing < self.weak_levels))
-        pick = best[weak, None]
+        pick = best[weak]
         risk = np.zeros(len(observation), dtype=bool)
         risk[weak] = ~self.escapes(
-            np.take_along_axis(expansion.position[weak], pick[..., None], axis=1),
-            *(np.take_along_axis(getattr(expansion, name)[weak], pick, axis=1)
-              for name in ("heading", "level", "terminal")),
+            *(getattr(expansion, name)[weak, pick][:, None]
+              for name in ("position", "heading", "level", "terminal")),
             radio_map.for_rows(weak))[:, 0]
         return risk
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.kinematics import closest_approach
+from shared.kinematics import clamp, closest_approach
 from shared.scenario import Scenario
 
 
@@ -36,7 +36,7 @@ class RewardModel:
         """R_c from the smallest gap (distance minus both radii) to any other UAV in the step:
         the collision reward at contact, rising linearly to 0 at the discomfort distance."""
         if self.discomfort > 0:
-            share = np.clip(1.0 - gap / self.discomfort, 0.0, 1.0)
+            share = clamp(1.0 - gap / self.discomfort, 0.0, 1.0)
         else:
             share = (gap <= 0).astype(np.float64)
         return np.where(gap <= 0, self.collision, self.collision * share)

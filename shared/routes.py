@@ -25,6 +25,8 @@ from typing import NamedTuple
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from shared.kinematics import clamp
+
 
 class _EdgeWeights(NamedTuple):
     """Length times mean crossing cost of every edge of the 8-connected grid, by direction:
@@ -86,19 +88,19 @@ class RouteGrid:
         self.store = np.empty((0, self.rows, self.cols), dtype=np.float32)
 
     def node_of(self, xy: np.ndarray) -> np.ndarray:
-        col = np.clip(np.rint((xy[..., 0] - self.x0) / self.cell), 0, self.cols - 1)
-        row = np.clip(np.rint((xy[..., 1] - self.y0) / self.cell), 0, self.rows - 1)
+        col = clamp(np.rint((xy[..., 0] - self.x0) / self.cell), 0, self.cols - 1)
+        row = clamp(np.rint((xy[..., 1] - self.y0) / self.cell), 0, self.rows - 1)
         return (row * self.cols + col).astype(np.int64)
 
     def slots(self, nodes: np.ndarray) -> np.ndarray:
-        """Slots in ``store`` of the distance fields to each destination node (distinct),
-        computed on first use; beyond cache_size the least recently used field's slot is
-        reused."""
+        """Slots in ``store`` of the distance fields to each destination node, computed on
+        first use (once for a node asked for twice); beyond cache_size the least recently
+        used field's slot is reused."""
         wanted = nodes.tolist()
         for node in wanted:
             if node in self.cache:
                 self.cache.move_to_end(node)
-        missing = [node for node in wanted if node not in self.cache]
+        missing = list(dict.fromkeys(node for node in wanted if node not in self.cache))
         if missing:
             fields = (self._swept_fields(missing[0]) if len(missing) == 1
                       else self._dijkstra(missing))
@@ -163,11 +165,10 @@ class RouteGrid:
         """Route distance from positions ``xy`` (N, ..., 2) to each row's ``destination``
         (N, 2): the field interpolated at ``xy`` plus the last stretch to the exact point."""
         nodes = self.node_of(destination)
-        unique, which = np.unique(nodes, return_inverse=True)
-        slot = self.slots(unique)[which]
+        slot = self.slots(nodes)
         fields = self.store
-        fx = np.clip((xy[..., 0] - self.x0) / self.cell, 0, self.cols - 1)
-        fy = np.clip((xy[..., 1] - self.y0) / self.cell, 0, self.rows - 1)
+        fx = clamp((xy[..., 0] - self.x0) / self.cell, 0, self.cols - 1)
+        fy = clamp((xy[..., 1] - self.y0) / self.cell, 0, self.rows - 1)
         c0 = np.minimum(np.floor(fx).astype(np.int64), self.cols - 2)
         r0 = np.minimum(np.floor(fy).astype(np.int64), self.rows - 2)
         tx, ty = fx - c0, fy - r0
@@ -182,9 +183,8 @@ class RouteGrid:
             + flat[corner + self.cols] * sx * ty
             + flat[corner + self.cols + 1] * tx * ty
         )
-        node_xy = np.stack([self.x0 + (nodes % self.cols) * self.cell,
-                            self.y0 + (nodes // self.cols) * self.cell], axis=-1)
-        offset = np.hypot(*(destination - node_xy).T)
+        offset = np.hypot(destination[:, 0] - (self.x0 + (nodes % self.cols) * self.cell),
+                          destination[:, 1] - (self.y0 + (nodes // self.cols) * self.cell))
         return value + offset.reshape((-1,) + (1,) * (xy.ndim - 2))
 
 
