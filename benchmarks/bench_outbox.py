@@ -14,16 +14,22 @@ import numpy as np
 
 from benchmarks.common import Figure, best_rate
 from jamnav.supervisor import Supervisor, UpConfig
-from shared.measurements import Measurement, scenario_features
+from shared.measurements import scenario_features
 from shared.scenario import load_scenario
-from uav_agent.uploads import DEFAULT_BATCH, DEFAULT_CAPACITY, Outbox, open_outbox
+from uav_agent.uploads import (
+    DEFAULT_BATCH,
+    DEFAULT_CAPACITY,
+    FEATURES_DTYPE,
+    Outbox,
+    open_outbox,
+)
 
 ROUNDS = 2  # runs of each outbox, alternated; each figure keeps its better run
 EPISODES = 30
 APPEND_TARGET_US = 10  # a step's 10 reports then cost a tenth of the 1 ms decision target
 
 
-def _append_rate(outbox: Outbox, step: list[Measurement]) -> float:
+def _append_rate(outbox: Outbox, step: list[tuple]) -> float:
     """Measurements per second through ``outbox``: a step's reports at a time, as the flight
     loop adds them, and a receipt for everything after every 64 steps, as the sender's."""
     def work() -> int:
@@ -48,9 +54,9 @@ def _up(run_dir: Path, durable: bool) -> dict:
 def run() -> list[Figure]:
     scenario = load_scenario()
     positions = np.random.default_rng(0).uniform(-40, 40, (scenario.uav.measurements_per_step, 2))
-    step = [Measurement.model_construct(id=f"3-0123abcd-{1_000_000 + i}", source="uav-3",
-                                        step=120, time=1.8e9, features=row, level=1)
-            for i, row in enumerate(scenario_features(scenario, positions).tolist())]
+    features = scenario_features(scenario, positions).astype(FEATURES_DTYPE, copy=False)
+    step = [(f"3-0123abcd-{1_000_000 + i}", "uav-3", 120, 1.8e9, row.tobytes(), 1)
+            for i, row in enumerate(features)]
     figures = []
     with tempfile.TemporaryDirectory() as tmp:
         for label, directory in (("memory", None), ("durable", Path(tmp))):

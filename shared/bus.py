@@ -259,12 +259,13 @@ def refuse(query: zenoh.Query, reason: str) -> None:
     query.reply_err(REFUSAL + reason.encode())
 
 
-def query(session: zenoh.Session, key: str, kind: type[M], payload: Message | None = None,
-          timeout: float = 2.0) -> M:
-    """The first valid reply of a query; QueryRefused if the only answers were errors,
-    BusError (one line) if none came."""
-    replies = session.get(key, payload=None if payload is None else encode(payload),
-                          timeout=timeout)
+def query(session: zenoh.Session, key: str, kind: type[M],
+          payload: Message | bytes | None = None, timeout: float = 2.0) -> M:
+    """The first valid reply of a query with ``payload`` (a message, or one encoded already);
+    QueryRefused if the only answers were errors, BusError (one line) if none came."""
+    if isinstance(payload, Message):
+        payload = encode(payload)
+    replies = session.get(key, payload=payload, timeout=timeout)
     problem, refused = "no reply (is the system running?)", False
     for reply in replies:
         if reply.ok is None:

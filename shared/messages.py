@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Iterable
 from typing import Annotated, Any, ClassVar, Literal, TypeVar
 
 import msgpack
@@ -22,7 +23,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
 
 from shared.features import Observation
-from shared.measurements import Measurement
+from shared.measurements import MEASUREMENT_FIELDS, Measurement
 from shared.outcomes import Outcome
 from shared.radio import JammerParams
 from shared.scenario import MAX_UAVS
@@ -466,6 +467,14 @@ def mapper_summary(cloud: ProcessStatus | None) -> str:
 # -- the wire -----------------------------------------------------------------------------------
 def encode(message: Message) -> bytes:
     return msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+
+
+def encode_upload(uav: int, records: Iterable[tuple]) -> bytes:
+    """``encode`` of a ``MeasurementUpload`` of ``records``, each a tuple of a ``Measurement``'s
+    field values in ``MEASUREMENT_FIELDS`` order, without a model per record: an agent uploads
+    the records it made itself, and the cloud validates each one on receipt."""
+    measurements = [dict(zip(MEASUREMENT_FIELDS, record, strict=True)) for record in records]
+    return msgpack.packb({"uav": uav, "measurements": measurements}, use_bin_type=True)
 
 
 def _unpack(payload: bytes, max_bytes: int) -> Any:

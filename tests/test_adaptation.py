@@ -8,6 +8,8 @@ import math
 import msgpack
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from cloud_service.evaluation import swapping_jammers, transient_episodes
 from cloud_service.sinr_mapping import ChangeDetector
@@ -42,6 +44,47 @@ def test_spot_filter_keeps_a_report_per_spacing_or_new_level(scenario):
     # The rule carries over from one call (step) to the next.
     again = spots.keep(np.array([1]), np.array([[[5.0, 5.0], [5.0, 6.0]]]), np.array([[2, 2]]))
     np.testing.assert_array_equal(again, [[0, 1]])
+
+
+def keep_one_by_one(spacing: float, last: list, uavs, xy, levels) -> np.ndarray:
+    """SpotFilter's rule as its docstring states it, one UAV and one report at a time; ``last``
+    holds each UAV's last kept (position, level) and is updated."""
+    kept = np.zeros(np.shape(levels), dtype=bool)
+    for row, uav in enumerate(uavs):
+        last_xy, last_level = last[uav]
+        for sample, (here, level) in enumerate(zip(xy[row], levels[row], strict=True)):
+            if np.hypot(*(here - last_xy)) >= spacing or level != last_level:
+                kept[row, sample] = True
+                last_xy, last_level = here, level
+        last[uav] = (last_xy, last_level)
+    return kept
+
+
+# Coordinates on a 5 cm lattice meet the spacing exactly (hypot == spacing) now and then.
+coordinates = st.one_of(st.integers(-40, 40).map(lambda k: k * 0.05),
+                        st.floats(-1e4, 1e4, allow_nan=False))
+
+
+@settings(max_examples=150, deadline=None)
+@given(data=st.data(), fleet=st.integers(1, 6), samples=st.integers(1, 12),
+       spacing=st.sampled_from([0.0, 0.05, 0.25, 1.0, 0.3]))
+def test_spot_filter_keeps_what_the_rule_keeps_report_by_report(data, fleet, samples, spacing,
+                                                                 scenario):
+    """The vectorized filter (any subset of the fleet a call, several calls) against the rule
+    applied one report at a time: the same masks, bit for bit."""
+    spots = SpotFilter(variant(scenario, uav={"measurement_spacing_m": spacing}), fleet)
+    last = [(np.array([np.inf, np.inf]), -1)] * fleet
+    for _ in range(data.draw(st.integers(1, 4))):
+        uavs = np.array(data.draw(st.lists(st.integers(0, fleet - 1), min_size=1,
+                                           max_size=fleet, unique=True)))
+        xy = np.array(data.draw(st.lists(coordinates, min_size=len(uavs) * samples * 2,
+                                         max_size=len(uavs) * samples * 2))
+                      ).reshape(len(uavs), samples, 2)
+        levels = np.array(data.draw(st.lists(st.integers(0, 3), min_size=len(uavs) * samples,
+                                             max_size=len(uavs) * samples))
+                          ).reshape(len(uavs), samples)
+        np.testing.assert_array_equal(spots.keep(uavs, xy, levels),
+                                      keep_one_by_one(spacing, last, uavs, xy, levels))
 
 
 def test_the_world_reports_along_the_path_with_seeded_noise(scenario):

@@ -143,7 +143,7 @@ def test_a_killed_agent_leaves_its_outbox_to_the_next_and_ctrl_c_stores_everythi
     with SinrMemory(run_dir / RUN_DIR_FILE, MeasurementSpec.of(scenario)) as memory:
         ids = memory.recent(memory.count()).ids
     assert len(ids) == len(set(ids)) == counts["taken"]
-    assert {m.id for _, m in left} <= set(ids)
+    assert {ident for _, (ident, *_) in left} <= set(ids)
     # Ids are <uav>-<agent process>-<count>: every count each agent process wrote is there.
     counted = defaultdict(set)
     for ident in ids:

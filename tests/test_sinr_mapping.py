@@ -91,6 +91,42 @@ def test_gbs_features_flag_the_gbss_on_the_nearest_ones_channel():
                                   gbs_features(np.zeros(2), gbs, 3, 50.0, 32.0).reshape(3, 5))
 
 
+def gbs_features_point_by_point(xy, gbs, nearby, altitude, height, channels=None):
+    """``gbs_features`` as its docstring states it, one point at a time over all GBSs."""
+    rows = []
+    for point in np.reshape(xy, (-1, 2)):
+        dx, dy = gbs[:, 0] - point[0], gbs[:, 1] - point[1]
+        chosen = np.argsort(np.hypot(dx, dy), kind="stable")[:nearby]
+        dx, dy = dx[chosen], dy[chosen]
+        distance = np.hypot(dx, dy)
+        columns = [dx, dy, distance, np.arctan2(height - altitude, distance), np.arctan2(dy, dx)]
+        if channels is not None:
+            channel = np.asarray(channels)[chosen]
+            columns.append(channel == channel[0])
+        rows.append(np.stack(columns, axis=-1).astype(np.float32).reshape(-1))
+    return np.array(rows).reshape(np.shape(xy)[:-1] + (-1,))
+
+
+@settings(max_examples=60, deadline=None)
+@given(corner=st.tuples(st.floats(-150, 100), st.floats(-150, 100)),
+       shape=st.sampled_from([(2,), (1, 2), (5, 2), (3, 4, 2)]),
+       size=st.floats(0, 60), nearby=st.integers(1, 12), channels=st.booleans(),
+       lattice=st.booleans())
+def test_gbs_features_are_those_of_each_point_alone_bit_for_bit(corner, shape, size, nearby,
+                                                                channels, lattice):
+    """Whatever the batching (a block reading only the GBSs near it, an agent's few points),
+    each point's features are the ones computed for it alone, to the last bit."""
+    rng = np.random.default_rng(len(shape) + nearby)
+    gbs = (np.stack(np.meshgrid(np.arange(-100.0, 100.0, 20.0), np.arange(-100.0, 100.0, 20.0)),
+                    axis=-1).reshape(-1, 2) if lattice else rng.uniform(-100, 100, (40, 2)))
+    gbs_channels = rng.integers(0, 3, len(gbs)).tolist() if channels else None
+    xy = np.array(corner) + rng.uniform(0, size, shape)
+    got = gbs_features(xy, gbs, nearby, 50.0, 32.0, gbs_channels)
+    want = gbs_features_point_by_point(xy, gbs, nearby, 50.0, 32.0, gbs_channels)
+    assert got.dtype == want.dtype and got.shape == want.shape
+    assert got.tobytes() == want.tobytes()
+
+
 @settings(max_examples=50, deadline=None)
 @given(
     uav=st.tuples(st.floats(-100, 100), st.floats(-100, 100)),

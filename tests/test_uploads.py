@@ -3,32 +3,37 @@ UAV holds and sends, whatever moment the first one died at."""
 
 from __future__ import annotations
 
+import itertools
 import logging
+import struct
 import tempfile
 from pathlib import Path
 from unittest import mock
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from shared.measurements import Measurement
-from uav_agent import uploads
+from shared.measurements import Measurement, SpotFilter, scenario_features
+from shared.messages import AgentObservation, MeasurementUpload, decode, encode
+from shared.topics import Topics
+from uav_agent import process, uploads
 from uav_agent.process import main as agent_main
 from uav_agent.uploads import DEFAULT_CAPACITY, Outbox, OutboxFile, open_outbox, outbox_path
 
 LOG = logging.getLogger("test-uploads")
 
 
-def measurements(first: int, count: int) -> list[Measurement]:
-    return [Measurement(id=f"0-test-{n}", source="uav-0", step=n, time=1e9 + n,
-                        features=[0.5 * n, -1.0, 12.25], level=n % 3)
+def measurements(first: int, count: int) -> list[tuple]:
+    """Records as an agent gives them to its outbox (``uploads.FEATURES_DTYPE``)."""
+    return [(f"0-test-{n}", "uav-0", n, 1e9 + n, struct.pack("<3f", 0.5 * n, -1.0, 12.25), n % 3)
             for n in range(first, first + count)]
 
 
-def held(outbox: Outbox) -> list[Measurement]:
+def held(outbox: Outbox) -> list[tuple]:
     """Everything the outbox would upload, oldest first."""
-    return [m for _, m in outbox.wait_batch(1, 0.0, timeout=0, flush=True)]
+    return [record for _, record in outbox.wait_batch(1, 0.0, timeout=0, flush=True)]
 
 
 class Agents:
@@ -187,9 +192,9 @@ def test_after_any_history_a_restarted_agent_holds_exactly_the_unacknowledged(st
                 outbox.tidy()
             elif action == "die":
                 outbox = agents.next()
-            assert [m.id for m in held(outbox)] == pending
+            assert [ident for ident, *_ in held(outbox)] == pending
         restarted = agents.next()
-        assert [m.id for m in held(restarted)] == pending
+        assert [ident for ident, *_ in held(restarted)] == pending
         ledger = restarted.ledger
         assert (ledger.taken, ledger.acknowledged, ledger.overflowed) == (
             taken, acknowledged, overflowed)
@@ -211,3 +216,58 @@ def test_a_uav_outside_the_fleet_cap_is_a_one_line_error(uav, capsys):
     assert agent_main(["--uav", uav]) == 2
     err = capsys.readouterr().err
     assert err == "agent: error: --uav must be between 0 and 1023\n"
+
+
+class UnansweredSession:
+    """A bus session whose queries nobody answers; it keeps the last payload sent."""
+
+    payload: bytes | None = None
+
+    def get(self, key, payload=None, timeout=None):
+        self.payload = payload
+        return []
+
+
+def flight(steps: int) -> list[AgentObservation]:
+    """Observations whose reports wander, hover (repeats the spot filter drops) and change
+    level."""
+    rng = np.random.default_rng(4)
+    xy = 100.0 + np.cumsum(rng.normal(0, 0.3, (steps * 10, 2)), axis=0).reshape(steps, 10, 2)
+    levels = (np.cumsum(rng.random(steps * 10) < 0.1) % 4).reshape(steps, 10)
+    return [AgentObservation(
+        episode=0, step=step, uav=3, position=tuple(xy[step, -1]), velocity=(0.0, 0.0),
+        heading=0.0, destination=(0.0, 0.0), radius=1.0, max_speed=5.0, level=0, below_steps=0,
+        others_position=[], others_velocity=[], others_radius=[], others_present=[],
+        measured=[(x, y, int(level)) for (x, y), level in zip(xy[step], levels[step],
+                                                              strict=True)])
+        for step in range(steps)]
+
+
+def test_the_agent_uploads_the_measurement_upload_its_models_would_make(scenario, tmp_path):
+    """The flight loop queues rows, not models: what the uploader sends is byte for byte the
+    MeasurementUpload the models would make of the same measurements (the reports kept, their
+    features, ids, times), valid as the cloud checks it, before and after a restart."""
+    with (mock.patch.multiple(process.bus, reliable_publisher=mock.DEFAULT,
+                              subscribe=mock.DEFAULT, serve_status=mock.DEFAULT),
+          mock.patch.object(process.time, "time", return_value=1.7e9)):
+        agent = process.AgentService(None, Topics("test"), scenario, 3, LOG, outbox_dir=tmp_path)
+        observations = flight(6)
+        for observation in observations:
+            agent._measure(observation)
+    spots, numbers, expected = SpotFilter(scenario, 1), itertools.count(), []
+    for observation in observations:
+        reports = np.array(observation.measured)
+        kept = reports[spots.keep([0], reports[None, :, :2], reports[None, :, 2])[0]]
+        expected += [Measurement(id=f"3-{agent.nonce}-{next(numbers)}", source="uav-3",
+                                 step=observation.step, time=1.7e9, features=row, level=level)
+                     for row, level in zip(scenario_features(scenario, kept[:, :2]).tolist(),
+                                           kept[:, 2].astype(int).tolist(), strict=True)]
+    assert 10 < len(expected) < 60  # some reports dropped, all in one upload
+
+    for outbox in (agent.outbox, open_outbox(100, tmp_path, 3, LOG)):  # and a restarted agent's
+        agent.uploader.outbox, agent.uploader.session = outbox, UnansweredSession()
+        assert not agent.uploader._send(outbox.wait_batch(1, 0.0, timeout=0, flush=True), 0.1)
+        payload = agent.uploader.session.payload
+        assert payload == encode(MeasurementUpload(uav=3, measurements=expected))
+        assert decode(MeasurementUpload, payload).measurements == expected
+        outbox.close()

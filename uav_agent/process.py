@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from shared import access, bus
-from shared.measurements import Measurement, MeasurementSpec, SpotFilter, scenario_features
+from shared.measurements import MeasurementSpec, SpotFilter, scenario_features
 from shared.messages import (
     MAX_UPLOAD,
     Action,
@@ -52,6 +52,7 @@ from uav_agent.uploads import (
     DEFAULT_BATCH,
     DEFAULT_CAPACITY,
     DEFAULT_MAX_AGE_S,
+    FEATURES_DTYPE,
     Uploader,
     open_outbox,
 )
@@ -136,9 +137,12 @@ class AgentService:
         self.uploader = Uploader(session, topics.measurements(uav), uav, self.outbox, log,
                                  upload_every, upload_after)
         self.spots = SpotFilter(scenario, 1)
+        self.spots_row = np.zeros(1, dtype=np.int64)  # this UAV, the filter's only one
+        self.source = f"uav-{uav}"
         # Measurement ids: this process's nonce and a count. Not (episode, step): a restarted
         # world flies its interrupted episode again, and those are new measurements.
         self.nonce = secrets.token_hex(4)
+        self.id_prefix = f"{uav}-{self.nonce}-"
         self.measured = itertools.count()
         self.action_pub = bus.reliable_publisher(session, topics.action(uav), express=True)
         self._declared = [
@@ -254,19 +258,18 @@ class AgentService:
         if not observation.measured:
             return
         reports = np.array(observation.measured, dtype=np.float64)
-        kept = reports[self.spots.keep(np.zeros(1), reports[None, :, :2], reports[None, :, 2])[0]]
-        if len(kept) == 0:
+        levels = reports[:, 2].astype(np.int64)
+        kept = self.spots.keep(self.spots_row, reports[None, :, :2], levels[None])[0]
+        if not kept.any():
             return
-        features = scenario_features(self.scenario, kept[:, :2])
+        features = scenario_features(self.scenario, reports[kept, :2])
         now = time.time()
-        # Built unchecked from the agent's own numbers, ten a step: the cloud checks every
-        # record on receipt (MeasurementSpec).
-        taken = [Measurement.model_construct(
-                     id=f"{self.uav}-{self.nonce}-{next(self.measured)}",
-                     source=f"uav-{self.uav}", step=observation.step, time=now, features=row,
-                     level=level)
-                 for row, level in zip(features.tolist(), kept[:, 2].astype(int).tolist(),
-                                       strict=True)]
+        # Records as the outbox holds them, not models: the agent's own numbers, a few a step,
+        # and the cloud checks every measurement on receipt (MeasurementSpec).
+        taken = [(f"{self.id_prefix}{next(self.measured)}", self.source, observation.step, now,
+                  row.tobytes(), level)
+                 for row, level in zip(features.astype(FEATURES_DTYPE, copy=False),
+                                       levels[kept].tolist(), strict=True)]
         self.outbox.add(taken, self.upload_every)
 
 

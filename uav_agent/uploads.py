@@ -34,8 +34,8 @@ from pathlib import Path
 import msgpack
 
 from shared import bus
-from shared.measurements import Measurement
-from shared.messages import MAX_UPLOAD, MeasurementUpload, UploadReceipt
+from shared.measurements import MEASUREMENT_FIELDS, Measurement
+from shared.messages import MAX_UPLOAD, UploadReceipt, encode_upload
 
 DEFAULT_CAPACITY = 20_000  # measurements: over 3 minutes of a UAV at 100 steps/s
 # Measurements per upload: each upload costs the cloud a transaction and the agent a round trip
@@ -57,6 +57,12 @@ FLUSH_S = 3.0  # how long a stopping agent keeps trying to hand over what it hol
 REWRITE_AFTER = 4096
 _FRAME = struct.Struct("<II")  # a record's header: payload length, CRC-32 of the payload
 _MEASUREMENT, _MARK = 0, 1  # record kinds
+# An outbox holds a measurement as its file stores it: Measurement's fields in order
+# (MEASUREMENT_FIELDS), the features as little-endian float32 bytes. Those are what the agent
+# computes and the cloud stores, in half the size of msgpack's float64 list, and the flight
+# loop never turns them into Python floats: the sender does, a batch at a time.
+FEATURES_DTYPE = "<f4"
+_TIME = MEASUREMENT_FIELDS.index("time")
 
 
 @dataclass
@@ -82,11 +88,18 @@ def _frame(record: list) -> bytes:
     return _FRAME.pack(len(payload), zlib.crc32(payload)) + payload
 
 
-def _measurement_frame(number: int, m: Measurement) -> bytes:
-    # Features as float32 bytes: what the agent computes and the cloud stores, in about half
-    # the time and half the size of msgpack's list of float64.
-    features = struct.pack(f"<{len(m.features)}f", *m.features)
-    return _frame([_MEASUREMENT, number, m.id, m.source, m.step, m.time, features, m.level])
+def _measurement_frame(number: int, record: tuple) -> bytes:
+    return _frame([_MEASUREMENT, number, *record])
+
+
+def _features(data: bytes) -> list[float]:
+    return list(struct.unpack(f"<{len(data) // 4}f", data))
+
+
+def _measurement_row(record: tuple) -> tuple:
+    """An outbox's record as Measurement's field values: the features as floats."""
+    ident, source, step, taken_at, features, level = record
+    return ident, source, step, taken_at, _features(features), level
 
 
 def _mark_frame(ledger: Ledger) -> bytes:
@@ -94,8 +107,9 @@ def _mark_frame(ledger: Ledger) -> bytes:
                    ledger.duplicates])
 
 
-def _decode(payload: bytes) -> Ledger | tuple[int, Measurement]:
-    """A record's payload; ValueError or TypeError when it is not one this module wrote."""
+def _decode(payload: bytes) -> Ledger | tuple[int, tuple]:
+    """A record's payload, a measurement as its number and record; ValueError or TypeError
+    when it is not one this module wrote."""
     kind, *fields = msgpack.unpackb(payload)
     if kind == _MARK:
         acknowledged, overflowed, refused, duplicates = map(int, fields)
@@ -104,9 +118,9 @@ def _decode(payload: bytes) -> Ledger | tuple[int, Measurement]:
     if kind != _MEASUREMENT:
         raise ValueError(f"unknown record kind {kind!r}")
     number, ident, source, step, taken_at, features, level = fields
-    return int(number), Measurement(
-        id=ident, source=source, step=step, time=taken_at,
-        features=list(struct.unpack(f"<{len(features) // 4}f", features)), level=level)
+    m = Measurement(id=ident, source=source, step=step, time=taken_at,
+                    features=_features(features), level=level)
+    return int(number), (m.id, m.source, m.step, m.time, features, m.level)
 
 
 def outbox_path(directory: Path, uav: int) -> Path:
@@ -127,7 +141,7 @@ class OutboxFile:
         self.path, self.log = Path(path), log
         self._fd: int | None = None
 
-    def load(self) -> tuple[Ledger, list[tuple[int, Measurement]]]:
+    def load(self) -> tuple[Ledger, list[tuple[int, tuple]]]:
         """The ledger an earlier agent left here, and its measurements not released."""
         try:
             data = self.path.read_bytes()
@@ -143,7 +157,7 @@ class OutboxFile:
         ledger.taken = max(ledger.released, held[-1][0] + 1 if held else 0)
         return ledger, held
 
-    def _records(self, data: bytes) -> Iterator[Ledger | tuple[int, Measurement]]:
+    def _records(self, data: bytes) -> Iterator[Ledger | tuple[int, tuple]]:
         """The records of ``data`` up to the first one cut short or damaged (an agent killed
         while writing it), which is dropped with what follows, and a warning."""
         offset = 0
@@ -162,18 +176,18 @@ class OutboxFile:
             yield record
             offset = start + length
 
-    def append(self, numbered: Iterable[tuple[int, Measurement]]) -> None:
-        self._write(b"".join(_measurement_frame(number, m) for number, m in numbered))
+    def append(self, numbered: Iterable[tuple[int, tuple]]) -> None:
+        self._write(b"".join(_measurement_frame(number, record) for number, record in numbered))
 
     def mark(self, ledger: Ledger) -> None:
         self._write(_mark_frame(ledger))
 
-    def rewrite(self, ledger: Ledger, held: Iterable[tuple[int, Measurement]]) -> None:
+    def rewrite(self, ledger: Ledger, held: Iterable[tuple[int, tuple]]) -> None:
         """Replace the file with ``ledger`` and ``held`` alone, atomically: an agent killed at
         any moment leaves the old file or the new one, whole."""
         staging = self.path.with_name(self.path.name + ".new")
         staging.write_bytes(_mark_frame(ledger) + b"".join(
-            _measurement_frame(number, m) for number, m in held))
+            _measurement_frame(number, record) for number, record in held))
         os.replace(staging, self.path)
         self.close()
         self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
@@ -191,13 +205,14 @@ class OutboxFile:
 
 class Outbox:
     """Measurements not yet acknowledged, oldest first, at most ``capacity`` of them; also in
-    ``file`` if given, starting with what an earlier agent left there."""
+    ``file`` if given, starting with what an earlier agent left there. Each is held as its
+    number and its record (see ``FEATURES_DTYPE``)."""
 
     def __init__(self, capacity: int = DEFAULT_CAPACITY, file: OutboxFile | None = None):
         if capacity < 1:
             raise ValueError("the outbox needs room for at least one measurement")
         self.capacity = capacity
-        self._items: deque[tuple[int, Measurement]] = deque()
+        self._items: deque[tuple[int, tuple]] = deque()
         self._cond = threading.Condition()
         self.ledger = Ledger()
         self._file = file
@@ -212,7 +227,8 @@ class Outbox:
         with self._cond:
             return len(self._items)
 
-    def add(self, measurements: Sequence[Measurement], batch: int) -> None:
+    def add(self, measurements: Sequence[tuple], batch: int) -> None:
+        """Take ``measurements`` (records); with a file, they are in the kernel on return."""
         with self._cond:
             before = len(self._items)
             numbered = list(enumerate(measurements, start=self.ledger.taken))
@@ -230,7 +246,7 @@ class Outbox:
             self.ledger.overflowed += 1
 
     def wait_batch(self, batch: int, max_age: float, timeout: float, flush: bool = False
-                   ) -> list[tuple[int, Measurement]]:
+                   ) -> list[tuple[int, tuple]]:
         """The oldest records (at most one upload's worth) once there are ``batch`` of them or
         the oldest is ``max_age`` seconds old (any at all with ``flush``); [] after
         ``timeout``."""
@@ -239,7 +255,7 @@ class Outbox:
             while True:
                 now = time.monotonic()
                 if self._items:
-                    age = time.time() - self._items[0][1].time
+                    age = time.time() - self._items[0][1][_TIME]
                     if flush or len(self._items) >= batch or age >= max_age:
                         return list(itertools.islice(self._items, MAX_UPLOAD))
                     wake = min(deadline, now + max_age - age)
@@ -327,10 +343,8 @@ class Uploader:
         if left := len(self.outbox):
             self.log.warning("stopped with %d measurements not handed over", left)
 
-    def _send(self, batch: list[tuple[int, Measurement]], timeout: float) -> bool:
-        # Built from measurements this agent made and checked: no second validation.
-        upload = MeasurementUpload.model_construct(uav=self.uav,
-                                                   measurements=[m for _, m in batch])
+    def _send(self, batch: list[tuple[int, tuple]], timeout: float) -> bool:
+        upload = encode_upload(self.uav, [_measurement_row(record) for _, record in batch])
         refused = duplicates = 0
         try:
             receipt = bus.query(self.session, self.key, UploadReceipt, upload, timeout=timeout)
