@@ -43,7 +43,7 @@ from shared.outcomes import Outcome
 from shared.paper import JammerSetting
 from shared.policy import LookaheadPolicy, RasterMap, sinr_network_raster
 from shared.scenario import Scenario
-from shared.shipped import DEFAULT_VALUE_NET_PATH, sinr_map_for
+from shared.shipped import best_value_net, sinr_map_for
 from world_sim.core import VectorWorld
 
 METHODS = ("proposed", "perfect", "outdated", "orca", "straight")
@@ -174,7 +174,7 @@ def evaluate(
     seed: int,
     jammer: JammerSetting | None,
     uavs: int | None = None,
-    value_net: Path = DEFAULT_VALUE_NET_PATH,
+    value_net: Path | None = None,
     sinr_map: Path | None = None,
     on_episode: Callable[[int], None] | None = None,
     swap_every: int | None = None,
@@ -184,15 +184,16 @@ def evaluate(
     headline rates count every episode; for ``proposed`` the transient (episodes flown on a
     map older than the jammer) is also reported apart, as is the rest. ``sinr_map``: the
     survey map ``proposed`` starts from (default: the shipped one of the scenario's world).
-    ``memory_dir`` keeps the cloud's measurement memory of a ``proposed`` run (a scratch
-    directory otherwise)."""
+    ``value_net``: default, the shipped one for the fleet's density. ``memory_dir`` keeps the
+    cloud's measurement memory of a ``proposed`` run (a scratch directory otherwise)."""
     if method not in METHODS:
         raise EvaluationError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     schedule = swapping_jammers(scenario, jammer, swap_every, seed)
     online = None
     with tempfile.TemporaryDirectory(prefix="jamnav-eval-") as scratch:
         if method in ("proposed", "perfect", "outdated"):
-            policy = load_policy(scenario, value_net)
+            policy = load_policy(scenario, value_net or best_value_net(
+                scenario.area.square_metres, uavs or scenario.missions.uav_count))
             if method == "proposed":
                 online = OnlineMaps(scenario, sinr_map or sinr_map_for(scenario.name),
                                     memory_dir or Path(scratch))

@@ -338,7 +338,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--run-dir", default="runs/cloud", metavar="DIR",
                         help="replay memory and published SINR maps")
     parser.add_argument("--value-net", default=DEFAULT_VALUE_NET, metavar="NAME|PATH",
-                        help=VALUE_NET_HELP)
+                        help=f"{VALUE_NET_HELP}; the cloud does not know the fleet: "
+                             f"{DEFAULT_VALUE_NET} unless told (`jamnav up` tells it)")
     parser.add_argument("--sinr-net", default=None, metavar="PATH",
                         help="the survey's no-jammer SINR map (online; default: the shipped "
                              "one of the scenario)")

@@ -28,10 +28,10 @@ from shared.scenario import (
     resolve_scenario_path,
 )
 from shared.shipped import (
-    DEFAULT_VALUE_NET,
     SINR_MAP_NO_JAMMER,
     VALUE_NET,
     VALUE_NET_HELP,
+    value_net_for,
     value_net_path,
 )
 from shared.topics import DEFAULT_ENDPOINT, DEFAULT_PREFIX, ENDPOINT_ENV, ArgumentParser
@@ -62,6 +62,11 @@ def _load_scenario(args: argparse.Namespace) -> Scenario:
         return load_scenario(args.scenario)
     except OSError as exc:
         raise UsageError(f"{resolve_scenario_path(args.scenario)}: {exc.strerror}") from None
+
+
+def _value_net(name_or_path: str | None, scenario: Scenario, uavs: int | None = None) -> Path:
+    return value_net_for(name_or_path, scenario.area.square_metres,
+                         uavs or scenario.missions.uav_count)
 
 
 def _numbers(text: str, count: int, what: str) -> list[float]:
@@ -254,7 +259,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     try:
         report = evaluate(scenario, args.method, args.episodes, args.seed, setting, args.uavs,
-                          value_net_path(args.model), args.sinr_map and Path(args.sinr_map),
+                          _value_net(args.model, scenario, args.uavs),
+                          args.sinr_map and Path(args.sinr_map),
                           on_episode,
                           args.swap_every)
     except EvaluationError as exc:
@@ -286,7 +292,8 @@ def cmd_table(args: argparse.Namespace) -> int:
     out = output_path("--out", args.out, directory=True)
     torch.set_num_threads(1)
     scenario = _load_scenario(args)
-    nets = {"paper": value_net_path(args.model), "extended": value_net_path(args.extended_model)}
+    nets = {"paper": value_net_path(args.model),
+            "extended": _value_net(args.extended_model, scenario)}
     for option, path in zip(("--model", "--extended-model"), nets.values(), strict=True):
         try:  # each network first flies after hours of the others' runs
             load_policy(scenario, path)
@@ -344,7 +351,7 @@ def cmd_figures(args: argparse.Namespace) -> int:
     log = Path(args.train_log)
     _check_train_log(log)
     try:  # Fig. 3 flies it last, after the online-map simulation of Fig. 2b
-        load_policy(scenario, value_net_path(args.model))
+        load_policy(scenario, _value_net(args.model, scenario))
     except EvaluationError as exc:
         raise UsageError(f"--model: {exc}") from None
     plot_reward_curve(log, out / "fig2a_reward_curve.png")
@@ -360,7 +367,7 @@ def cmd_figures(args: argparse.Namespace) -> int:
         params = None if jammer is None else RadioModel.jammer_of(jammer)
         try:
             positions, destinations, outcomes = trajectories(
-                scenario, setting, args.seed, value_net_path(args.model))
+                scenario, setting, args.seed, _value_net(args.model, scenario))
         except EvaluationError as exc:
             raise UsageError(f"figures: {exc}") from None
         panels.append(("", params, positions, destinations, outcomes))
@@ -598,7 +605,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--episodes", type=int, default=200)
     evaluation.add_argument("--uavs", type=int, default=None, help="UAVs per episode")
     evaluation.add_argument("--seed", type=int, default=0)
-    evaluation.add_argument("--model", default=DEFAULT_VALUE_NET, help=VALUE_NET_HELP)
+    evaluation.add_argument("--model", default=None, help=VALUE_NET_HELP)
     evaluation.add_argument("--sinr-map", default=None,
                             help="initial SINR map of the proposed method (default: the "
                                  "shipped no-jammer map of the scenario)")
@@ -617,8 +624,9 @@ def build_parser() -> argparse.ArgumentParser:
     table.add_argument("--out", default="results", metavar="DIR")
     table.add_argument("--model", default="paper",
                        help="the paper-method column's value network (a name or a path)")
-    table.add_argument("--extended-model", default=DEFAULT_VALUE_NET,
-                       help="the extended column's value network (a name or a path)")
+    table.add_argument("--extended-model", default=None,
+                       help="the extended column's value network (a name or a path; default: "
+                            "the best shipped one for the scenario's fleet)")
     table.set_defaults(handler=cmd_table)
 
     figures = commands.add_parser("figures", help="the paper's Fig. 2a, 2b and 3 from real runs")
@@ -627,7 +635,7 @@ def build_parser() -> argparse.ArgumentParser:
     figures.add_argument("--seed", type=int, default=0)
     figures.add_argument("--train-log", default=str(VALUE_NET.with_name("train_log.csv")),
                          help="training log for Fig. 2a (default: the shipped model's)")
-    figures.add_argument("--model", default=DEFAULT_VALUE_NET,
+    figures.add_argument("--model", default=None,
                          help=f"{VALUE_NET_HELP}, flown in Fig. 3")
     figures.set_defaults(handler=cmd_figures)
 

@@ -22,7 +22,7 @@ from pathlib import Path
 from jamnav.arguments import SEED_MAX, UsageError, check_range, output_path
 from shared.messages import JammerCommand, mapper_summary
 from shared.scenario import MAX_UAVS, ScenarioError, load_scenario
-from shared.shipped import VALUE_NET_HELP, value_net_path
+from shared.shipped import VALUE_NET_HELP, value_net_for, value_net_path
 from shared.topics import (
     DEFAULT_ENDPOINT,
     ENDPOINT_ENV,
@@ -140,7 +140,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         seed=args.seed, report=Path(args.report) if args.report else None,
         swap_at=args.swap_jammer_at, swap_to=swap_to,
         retrain_samples=args.retrain_samples, figures=not args.no_figures,
-        model=value_net_path(args.model) if args.model else None,
+        model=value_net_for(args.model, scenario.area.square_metres, uavs),
         secure=args.secure or args.credentials is not None,
         credentials=Path(args.credentials) if args.credentials else None,
         routers=args.routers, agent_endpoint=agent_endpoint, link_endpoint=link_endpoint,

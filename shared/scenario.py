@@ -57,6 +57,10 @@ class Area(_Strict):
     def contains(self, x: float, y: float) -> bool:
         return self.x_min <= x <= self.x_max and self.y_min <= y <= self.y_max
 
+    @property
+    def square_metres(self) -> float:
+        return (self.x_max - self.x_min) * (self.y_max - self.y_min)
+
 
 class Gbs(_Strict):
     positions: list[tuple[Finite, Finite]] = Field(min_length=1)

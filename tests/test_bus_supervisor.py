@@ -55,6 +55,8 @@ def test_up_runs_seeded_episodes_like_eval_and_leaves_nothing_behind(supervisor,
     assert [e["type"] for e in report["events"]].count("uav_outcomes") == episodes
     assert all(isinstance(e["t"], float) for e in report["events"])
     assert "success" in out and report["stopped_by"] == "end"
+    # 16 UAVs on icc2021's hectare are a crowd: both paths chose the network trained in one.
+    assert report["model"] == ("extended-crowd" if uavs == 16 else "extended")
 
 
 def test_a_running_system_is_controlled_restarts_a_dead_agent_and_stops_on_ctrl_c(

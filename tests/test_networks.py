@@ -21,6 +21,7 @@ from shared.networks import (
     to_bytes,
 )
 from shared.shipped import (
+    EXTENDED_CROWD_VALUE_NET,
     EXTENDED_VALUE_NET,
     SINR_MAP_NO_JAMMER,
     SINR_MAP_NO_JAMMER_SHADOWED,
@@ -80,8 +81,9 @@ def test_round_trip_is_exact(module, tmp_path):
     assert to_bytes(loaded) == path.read_bytes()
 
 
-@pytest.mark.parametrize("path", [VALUE_NET, EXTENDED_VALUE_NET, SINR_MAP_NO_JAMMER,
-                                  SINR_MAP_NO_JAMMER_SHADOWED], ids=lambda path: path.stem)
+@pytest.mark.parametrize("path", [VALUE_NET, EXTENDED_VALUE_NET, EXTENDED_CROWD_VALUE_NET,
+                                  SINR_MAP_NO_JAMMER, SINR_MAP_NO_JAMMER_SHADOWED],
+                         ids=lambda path: path.stem)
 def test_the_numpy_forward_agrees_with_torch_on_the_shipped_models(path):
     network, _ = load_network(path)
     assert to_bytes(network) == path.read_bytes()

@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import inspect
 
-from cloud_service.evaluation import evaluate
+from cloud_service.evaluation import evaluate, load_policy
 from jamnav.supervisor import summary_table, swap_rates
 from shared.shipped import (
     DEFAULT_VALUE_NET,
+    EXTENDED_CROWD_VALUE_NET,
     EXTENDED_VALUE_NET,
     VALUE_NET,
+    best_value_net,
+    value_net_for,
     value_net_name,
     value_net_path,
 )
@@ -73,7 +76,26 @@ def test_the_value_network_is_named_by_its_shipped_name_or_its_path(tmp_path):
     assert value_net_name(value_net_path("paper-tt6")) == "paper-tt6"
 
 
-def test_the_library_flies_the_best_network_by_default_too():
+def test_the_default_network_is_the_one_for_the_fleets_density():
+    hectare, city = 10_000.0, 160_000.0
+    assert best_value_net(hectare, 4) == best_value_net(hectare, 7) == EXTENDED_VALUE_NET
+    assert best_value_net(hectare, 8) == best_value_net(hectare, 16) == EXTENDED_CROWD_VALUE_NET
+    assert best_value_net(city, 64) == EXTENDED_VALUE_NET  # the paper's density on 16 ha
+    assert best_value_net(city, 128) == EXTENDED_CROWD_VALUE_NET
+    assert value_net_for(None, hectare, 16) == EXTENDED_CROWD_VALUE_NET
+    assert value_net_for("paper", hectare, 16) == VALUE_NET  # asked for, whatever the fleet
+    assert value_net_name(EXTENDED_CROWD_VALUE_NET) == "extended-crowd"
+
+
+def test_the_library_flies_the_best_network_by_default_too(scenario, monkeypatch):
     """A benchmark or a notebook calling evaluate() gets what `jamnav eval` gets."""
-    default = inspect.signature(evaluate).parameters["value_net"].default
-    assert value_net_name(default) == DEFAULT_VALUE_NET == "extended"
+    import cloud_service.evaluation as evaluation
+
+    assert inspect.signature(evaluate).parameters["value_net"].default is None
+    flown = []
+    monkeypatch.setattr(evaluation, "load_policy", lambda scenario, path: flown.append(path)
+                        or load_policy(scenario, path))
+    for uavs in (None, 16):
+        evaluate(scenario, "perfect", 1, 0, None, uavs)
+    assert flown == [EXTENDED_VALUE_NET, EXTENDED_CROWD_VALUE_NET]
+    assert DEFAULT_VALUE_NET == "extended"
