@@ -7,6 +7,7 @@ import itertools
 import logging
 import struct
 import tempfile
+import threading
 from pathlib import Path
 from unittest import mock
 
@@ -18,6 +19,7 @@ from hypothesis import strategies as st
 from shared.measurements import Measurement, SpotFilter, scenario_features
 from shared.messages import AgentObservation, MeasurementUpload, decode, encode
 from shared.topics import Topics
+from tests.support import wait_until
 from uav_agent import process, uploads
 from uav_agent.process import main as agent_main
 from uav_agent.uploads import DEFAULT_CAPACITY, Outbox, OutboxFile, open_outbox, outbox_path
@@ -271,3 +273,48 @@ def test_the_agent_uploads_the_measurement_upload_its_models_would_make(scenario
         assert payload == encode(MeasurementUpload(uav=3, measurements=expected))
         assert decode(MeasurementUpload, payload).measurements == expected
         outbox.close()
+
+
+def test_new_maps_are_built_beside_the_deciding_thread_and_never_replaced_by_older(scenario,
+                                                                                    tmp_path):
+    """A map's raster takes tens of milliseconds: the agent's "maps" thread builds it, and the
+    deciding thread only swaps it in. A version built late never replaces a newer one."""
+    from shared.messages import SinrMap
+    from shared.networks import sha256
+    from shared.shipped import sinr_map_for
+
+    data = sinr_map_for(scenario.name).read_bytes()
+    maps = [SinrMap(version=v, sha256=sha256(data), data=data, mode="online") for v in (1, 2, 3)]
+    built_on = []
+    real_raster = process.Models._raster
+
+    def raster(self, update):
+        built_on.append(threading.current_thread().name)
+        return real_raster(self, update)
+
+    with (mock.patch.multiple(process.bus, reliable_publisher=mock.DEFAULT,
+                              subscribe=mock.DEFAULT, serve_status=mock.DEFAULT),
+          mock.patch.object(process.Models, "_raster", raster)):
+        agent = process.AgentService(None, Topics("test"), scenario, 0, LOG, outbox_dir=tmp_path)
+        stop = threading.Event()
+        helper = threading.Thread(target=agent._prepare_updates, args=(stop,), name="maps")
+        helper.start()
+        try:
+            agent.updates.put(maps[1])
+            wait_until(lambda: not agent.prepared.empty(), 30, "version 2 built")
+            agent._take_updates()
+            assert agent.models.sinr_version == 2 and built_on == ["maps"]
+            agent.updates.put(maps[0])  # older than what flies: not even built
+            agent.updates.put(maps[2])
+            wait_until(lambda: agent.prepared.qsize() == 2, 30, "both handled")
+        finally:
+            stop.set()
+            helper.join()
+        agent._take_updates()
+        assert agent.models.sinr_version == 3 and built_on == ["maps", "maps"]
+        newest = agent.models.radio_map
+        assert agent.models.prepare(maps[2]) is None  # not newer than what flies
+        late = process.Models(scenario, LOG).prepare(maps[1])  # built before 3 was taken
+        agent.models.commit(maps[1], late)
+        assert agent.models.sinr_version == 3 and agent.models.radio_map is newest
+        agent.outbox.close()

@@ -78,21 +78,38 @@ class Models:
 
     def accept(self, update: ValueWeights | SinrMap) -> None:
         """Swap in ``update`` if it is newer and sound; raise WeightsError otherwise (the
-        caller keeps flying with what it has). The digest was checked when the message was
-        decoded; here the tensors' names, shapes and dtypes are."""
+        caller keeps flying with what it has)."""
+        self.commit(update, self.prepare(update))
+
+    def prepare(self, update: ValueWeights | SinrMap) -> LookaheadPolicy | RasterMap | None:
+        """What ``update`` is flown with, built (None if it is not newer); WeightsError if it
+        cannot be used. The digest was checked when the message was decoded; here the tensors'
+        names, shapes and dtypes are. Any thread may prepare: a map's raster takes tens of
+        milliseconds, which must not hold up a decision."""
         if isinstance(update, ValueWeights):
-            if self.value_version is not None and update.version <= self.value_version:
-                return
-            network = from_bytes(update.data, expected={"kind": "value"})
-            self.policy = LookaheadPolicy(self.scenario, network)
-            self.value_version = update.version
+            if not self._newer(update):
+                return None
+            return LookaheadPolicy(self.scenario, from_bytes(update.data,
+                                                             expected={"kind": "value"}))
+        if not self._newer(update):
+            return None
+        return RasterMap(self.scenario, [self._raster(update)], np.zeros(1, dtype=np.int64))
+
+    def commit(self, update: ValueWeights | SinrMap,
+               built: LookaheadPolicy | RasterMap | None) -> None:
+        """Fly with what ``prepare`` built, unless a newer version came first (the thread
+        that decides calls this)."""
+        if built is None or not self._newer(update):
+            return
+        if isinstance(update, ValueWeights):
+            self.policy, self.value_version = built, update.version
         else:
-            if self.sinr_version is not None and update.version <= self.sinr_version:
-                return
-            raster = self._raster(update)
-            self.radio_map = RasterMap(self.scenario, [raster], np.zeros(1, dtype=np.int64))
-            self.sinr_version = update.version
+            self.radio_map, self.sinr_version = built, update.version
         self.log.info("using %s version %d", type(update).__name__, update.version)
+
+    def _newer(self, update: ValueWeights | SinrMap) -> bool:
+        current = self.value_version if isinstance(update, ValueWeights) else self.sinr_version
+        return current is None or update.version > current
 
     def _raster(self, update: SinrMap) -> LevelRaster:
         scenario = self.scenario
@@ -124,7 +141,10 @@ class AgentService:
         self.models = Models(scenario, log)
         self.dropped = bus.Dropped(log)
         self.observations: queue.SimpleQueue = queue.SimpleQueue()
+        # New weights as they arrive (or the reasons they could not be read), and the same
+        # once the preparing thread has built what they are flown with.
         self.updates: queue.SimpleQueue = queue.SimpleQueue()
+        self.prepared: queue.SimpleQueue = queue.SimpleQueue()
         # State in -> action out: wall time from arrival (it includes waiting for a core) and
         # the CPU time the main thread spent on it.
         self.timings_us: deque[float] = deque(maxlen=TIMINGS_KEPT)
@@ -195,13 +215,16 @@ class AgentService:
     # -- main loop --------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
         """Fly until ``stop``, then hand the outbox over to the cloud before returning."""
-        sender = threading.Thread(target=self.uploader.run, args=(stop,), name="uploads")
-        sender.start()
+        helpers = [threading.Thread(target=self.uploader.run, args=(stop,), name="uploads"),
+                   threading.Thread(target=self._prepare_updates, args=(stop,), name="maps")]
+        for helper in helpers:
+            helper.start()
         try:
             self._fly(stop)
         finally:
             stop.set()
-            sender.join()
+            for helper in helpers:
+                helper.join()
             self.outbox.close()
 
     def _fly(self, stop: threading.Event) -> None:
@@ -219,21 +242,38 @@ class AgentService:
             for _, seen in received:
                 self._measure(seen)
 
-    def _take_updates(self) -> None:
-        """New weights, checked; refusals (unreadable payloads, queued as (kind, None,
-        reason), or sound messages with unusable weights) are reported as events."""
-        while not self.updates.empty():
-            update = self.updates.get_nowait()
-            if isinstance(update, tuple):
-                self._report_refusal(*update)
+    def _prepare_updates(self, stop: threading.Event) -> None:
+        """Build what each new version is flown with, beside the deciding thread."""
+        while not stop.is_set():
+            try:
+                update = self.updates.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            if isinstance(update, tuple):  # unreadable: nothing to build
+                self.prepared.put(update)
                 continue
             try:
-                self.models.accept(update)
+                self.prepared.put((update, self.models.prepare(update)))
             except WeightsError as exc:
-                kind = "value" if isinstance(update, ValueWeights) else "sinr_map"
-                key = self.topics.value_weights if kind == "value" else self.topics.sinr_map
-                if self.dropped.add(key, f"version {update.version} refused: {exc}"):
-                    self._report_refusal(kind, update.version, str(exc))
+                self.prepared.put((update, exc))
+
+    def _take_updates(self) -> None:
+        """Fly with the new weights prepared since the last decision; refusals (unreadable
+        payloads, queued as (kind, None, reason), or sound messages with unusable weights) are
+        reported as events."""
+        while not self.prepared.empty():
+            item = self.prepared.get_nowait()
+            if len(item) == 3:
+                self._report_refusal(*item)
+                continue
+            update, built = item
+            if not isinstance(built, WeightsError):
+                self.models.commit(update, built)
+                continue
+            kind = "value" if isinstance(update, ValueWeights) else "sinr_map"
+            key = self.topics.value_weights if kind == "value" else self.topics.sinr_map
+            if self.dropped.add(key, f"version {update.version} refused: {built}"):
+                self._report_refusal(kind, update.version, str(built))
 
     def _report_refusal(self, kind: str, version: int | None, reason: str) -> None:
         flying_on = self.models.value_version if kind == "value" else self.models.sinr_version
