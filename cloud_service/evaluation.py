@@ -43,7 +43,7 @@ from shared.outcomes import Outcome
 from shared.paper import JammerSetting
 from shared.policy import LookaheadPolicy, RasterMap, sinr_network_raster
 from shared.scenario import Scenario
-from shared.shipped import best_value_net, sinr_map_for
+from shared.shipped import sinr_map_for, value_net_for
 from world_sim.core import VectorWorld
 
 METHODS = ("proposed", "perfect", "outdated", "orca", "straight")
@@ -192,8 +192,8 @@ def evaluate(
     online = None
     with tempfile.TemporaryDirectory(prefix="jamnav-eval-") as scratch:
         if method in ("proposed", "perfect", "outdated"):
-            policy = load_policy(scenario, value_net or best_value_net(
-                scenario.area.square_metres, uavs or scenario.missions.uav_count))
+            policy = load_policy(scenario, value_net_for(
+                value_net, scenario.area.square_metres, uavs or scenario.missions.uav_count))
             if method == "proposed":
                 online = OnlineMaps(scenario, sinr_map or sinr_map_for(scenario.name),
                                     memory_dir or Path(scratch))

@@ -47,7 +47,7 @@ VALUE_NET_HELP = ("value network: a shipped one by name (extended, the best for 
 # What makes a fleet a crowd is how many UAVs meet, and the features are local: so density, not
 # count (the city's 64 UAVs on 16 ha fly as icc2021's 4 on 1 ha). Measured on Table I's
 # settings, proposed, seed 0 (BENCHMARKS.md, "Planning"): at 16 per hectare extended-crowd
-# 94.7 % against 93.0 %; at 8 per hectare 96.8 % against 96.7 %, a tie.
+# 94.7 % against 93.8 %; at 8 per hectare 96.8 % against 96.7 %, a tie.
 CROWD_UAVS_PER_HECTARE = 8.0
 
 

@@ -86,13 +86,11 @@ class Models:
         cannot be used. The digest was checked when the message was decoded; here the tensors'
         names, shapes and dtypes are. Any thread may prepare: a map's raster takes tens of
         milliseconds, which must not hold up a decision."""
-        if isinstance(update, ValueWeights):
-            if not self._newer(update):
-                return None
-            return LookaheadPolicy(self.scenario, from_bytes(update.data,
-                                                             expected={"kind": "value"}))
         if not self._newer(update):
             return None
+        if isinstance(update, ValueWeights):
+            return LookaheadPolicy(self.scenario, from_bytes(update.data,
+                                                             expected={"kind": "value"}))
         return RasterMap(self.scenario, [self._raster(update)], np.zeros(1, dtype=np.int64))
 
     def commit(self, update: ValueWeights | SinrMap,
