@@ -1,9 +1,12 @@
 """Lookahead decisions/s: full evaluation of every permissible action for 256 UAVs at once
 (64 environments x 4 UAVs), true map with a jammer, value network on one CPU thread; for the
 paper's method (one step), and for the shipped extended network (route distances, safe cells,
-and the scenario's deeper search for UAVs whose one-step choice is a trap)."""
+and the scenario's deeper search for UAVs whose one-step choice is a trap). And what an
+agent's first decision of an episode adds: the route field to its new destination."""
 
 from __future__ import annotations
+
+import time
 
 import numpy as np
 
@@ -12,8 +15,10 @@ from cloud_service.evaluation import load_policy
 from cloud_service.rollout import LookaheadController, perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
 from shared.features import joint_state_size
-from shared.policy import LookaheadPolicy
-from shared.scenario import load_scenario
+from shared.paper import TABLE_I_JAMMERS, jammer_params
+from shared.policy import MAP_SPACING_M, LevelRaster, LookaheadPolicy, TrueMap
+from shared.radio import RadioModel
+from shared.scenario import Scenario, load_scenario
 from shared.shipped import EXTENDED_VALUE_NET
 from world_sim.core import VectorWorld, episode_seed
 
@@ -38,4 +43,23 @@ def run() -> list[Figure]:
         rate = best_rate(decide, repeats=3, min_seconds=1.0)
         figures.append(Figure(f"lookahead decisions/s, {name} (256 UAVs x all actions, "
                               "batched)", rate, "decisions/s", 20_000))
+    figures.append(Figure("route field to one new destination, as an agent sweeps it, ms",
+                          single_route_field_ms(scenario), "ms", lower_is_better=True))
     return figures
+
+
+ROUTE_DESTINATIONS = 200
+
+
+def single_route_field_ms(scenario: Scenario) -> float:
+    """Mean time of the route field to each of ROUTE_DESTINATIONS distinct destinations, one at
+    a time (the numpy sweep an agent runs at its first decision of an episode), on the true
+    map with Table I's first jammer."""
+    truth = TrueMap(RadioModel(scenario), jammer_params(scenario, TABLE_I_JAMMERS[0]))
+    routes = LevelRaster.sample(scenario, truth.level_at, MAP_SPACING_M).routes(scenario)
+    nodes = np.random.default_rng(0).choice(routes.rows * routes.cols, ROUTE_DESTINATIONS,
+                                            replace=False)
+    start = time.perf_counter()
+    for node in nodes:
+        routes.slots(node[None])  # each a new destination: swept, then cached
+    return 1000.0 * (time.perf_counter() - start) / ROUTE_DESTINATIONS

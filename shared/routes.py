@@ -133,20 +133,27 @@ class RouteGrid:
         return dijkstra(self._graph, directed=False, indices=nodes)
 
     def _swept_fields(self, node: int) -> np.ndarray:
-        """The field to one destination by Gauss-Seidel sweeps: rows down and up, then columns
-        right and left, each line relaxed from the one before it, until no edge shortens it
-        (2-4 rounds: about one per bend of the routes)."""
+        """The field to one destination by Gauss-Seidel sweeps until no edge shortens it
+        (2-4 rounds: about one per bend of the routes). A round sweeps the rows down and up,
+        then the columns right and left, each line relaxed from the one before it. The two
+        sweeps along an axis run at once, on two copies of the field stacked together (the
+        second upside down, so that it too runs first to last), and each node keeps the
+        shorter of the two: one numpy call relaxes a line of each, which makes a field about
+        a sixth cheaper than sweeping them one after the other."""
         # A border of infinity, so that every line reads three neighbours of each column.
         padded = np.full((self.rows + 2, self.cols + 2), np.inf)
         field = padded[1:-1, 1:-1]
         field.flat[node] = 0.0
         if self._lines is None:
-            self._lines = (self.weights.from_previous_line(),
-                           self.weights.transposed().from_previous_line())
-        by_rows, by_columns = self._lines
+            self._lines = tuple(
+                np.stack([forward, backward[::-1]]) for forward, backward in
+                (self.weights.from_previous_line(),
+                 self.weights.transposed().from_previous_line()))
         while True:
-            _sweep_lines(padded, *by_rows)
-            _sweep_lines(padded.T, *by_columns)
+            for lines, weights in zip((padded, padded.T), self._lines, strict=True):
+                both_ways = np.stack([lines, lines[::-1]])
+                _sweep_lines(both_ways, weights)
+                np.minimum(both_ways[0], both_ways[1][::-1], out=lines)
             if not self.weights.improvable(field):
                 return field[None]
 
@@ -188,19 +195,17 @@ class RouteGrid:
         return value + offset.reshape((-1,) + (1,) * (xy.ndim - 2))
 
 
-def _sweep_lines(padded: np.ndarray, forward: np.ndarray, backward: np.ndarray) -> None:
-    """Relax every line of ``padded`` (in place; its border stays infinite) from the line
-    before it, first to last and back, by the weights of ``from_previous_line``. Columns are
-    swept as the rows of the transpose."""
-    lines = padded.shape[0] - 2
-    neighbours = sliding_window_view(padded, 3, axis=1)  # [line, c] = columns c - 1 .. c + 1
-    reached = np.empty(neighbours.shape[1:])
-    best = np.empty(neighbours.shape[1])
-    order = [(line, line - 1, forward[line - 2]) for line in range(2, lines + 1)] + [
-        (line, line + 1, backward[line - 1]) for line in range(lines - 1, 0, -1)]
-    for line, previous, weight in order:
-        np.add(neighbours[previous], weight, out=reached)
-        np.minimum(reached[:, 0], reached[:, 1], out=best)
-        np.minimum(best, reached[:, 2], out=best)
-        here = padded[line, 1:-1]
+def _sweep_lines(stacked: np.ndarray, weights: np.ndarray) -> None:
+    """Relax every line of each padded field of ``stacked`` (copies, line, column), in place
+    and first to last, from the line before it, by that copy's ``weights`` (copies, lines - 1,
+    columns, 3) in the form of ``from_previous_line``; the borders stay infinite."""
+    lines = stacked.shape[1] - 2
+    neighbours = sliding_window_view(stacked, 3, axis=2)  # [copy, line, c] = columns c-1..c+1
+    reached = np.empty((stacked.shape[0], *neighbours.shape[2:]))
+    best = np.empty(reached.shape[:2])
+    for line in range(2, lines + 1):
+        np.add(neighbours[:, line - 1], weights[:, line - 2], out=reached)
+        np.minimum(reached[..., 0], reached[..., 1], out=best)
+        np.minimum(best, reached[..., 2], out=best)
+        here = stacked[:, line, 1:-1]
         np.minimum(here, best, out=here)
