@@ -13,8 +13,8 @@ d[v] = min(d[v], d[u] + w(u, v)) over the same float64 edge weights, whatever th
 relaxations (test). scipy's Dijkstra, in C, is fastest for the batches of destinations that
 training and the in-process flights ask for; but importing scipy's graph module costs a process
 about 31 MiB. An agent routes one UAV to one destination per map, so a single destination is
-swept in numpy instead (``_swept_fields``: 2-2.5 ms on icc2021's grid against Dijkstra's
-0.6), and an agent never loads scipy.
+swept in numpy instead (``_swept_fields``: about 2.2 ms on icc2021's grid with its margin,
+bench_policy, against Dijkstra's 0.6), and an agent never loads scipy.
 """
 
 from __future__ import annotations
