@@ -16,7 +16,6 @@ from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
 from jamnav.cli import main as jamnav
 from shared.measurements import MeasurementSpec
 from shared.scenario import load_scenario, resolve_scenario_path
-from shared.shipped import value_net_path
 from tests.support import free_endpoint, gone, wait_until
 
 
@@ -134,19 +133,17 @@ def test_agents_measure_and_upload_what_the_in_process_evaluation_uploads(superv
     noisy.write_text(Path(resolve_scenario_path("icc2021")).read_text().replace(
         "measurement_noise_db = 0.0", "measurement_noise_db = 1.0").replace(
         "change_threshold = 12.0", "change_threshold = 1e9"))
-    # The paper's network: with the extended one the outcomes agree too, but some reports do
-    # not (a path drifts apart somewhere; the cause is not found yet), so the reports cannot
-    # be compared one for one.
+    # The default network, so the whole planner of an agent (route fields swept in numpy,
+    # the deeper search, the reciprocal model) flies the in-process planner's paths.
     process = supervisor("--uavs", "3", "--episodes", "2", "--lockstep", "--map", "online",
-                         "--model", "paper",
                          "--no-jammer", "--seed", "8", "--no-figures", "--scenario", str(noisy),
                          "--endpoint", free_endpoint(), "--run-dir", str(tmp_path / "run"))
     _, err = process.communicate(timeout=150)
     assert process.returncode == 0, err[-2000:]
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     world = load_scenario(noisy)
-    expected = evaluate(world, "proposed", 2, 8, None, 3, value_net_path("paper"),
-                        memory_dir=tmp_path / "eval")
+    expected = evaluate(world, "proposed", 2, 8, None, 3, memory_dir=tmp_path / "eval")
+    assert report["model"] == "extended"
     assert report["outcomes"] == expected["outcomes"]
     assert not any(e["type"] == "change_detected" for e in report["events"])
     on_the_bus = _reports_in(tmp_path / "run" / RUN_DIR_FILE, world)
