@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from shared.outcomes import Outcome
+from shared.radio import RadioModel
+from shared.scenario import load_scenario
 from world_sim.core import VectorWorld, episode_seed
 
 COVERED = (12.5, 0.0)  # next to a GBS: connected with or without the default jammer
@@ -132,3 +134,28 @@ def test_jammer_is_settable_per_environment(scenario):
     world.set_jammer([1], None)
     world.step(np.zeros((2, 1)), world.heading.copy())
     assert world.sinr_db[0, 0] < world.sinr_db[1, 0]
+
+
+def test_an_ended_mission_leaves_the_others_readings_and_reports_as_they_were():
+    """The radio is evaluated for active UAVs only, but every receiver's noise is drawn: the
+    other UAVs read and report what they would have with that one still flying, noise
+    included, in the shadowed world (independently: the radio at their new positions)."""
+    shadowed = load_scenario("icc2021-shadowed")
+    worlds = [VectorWorld(shadowed, 2, 4, record_measurements=True) for _ in range(2)]
+    for world in worlds:
+        world.reset([0, 1], [episode_seed(5, 0), episode_seed(5, 1)])
+    worlds[1].status[0, 2] = Outcome.SUCCESS  # its mission ended the step before
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        speed = rng.uniform(0.0, shadowed.uav.max_speed_mps, (2, 4))
+        heading = worlds[0].heading + rng.uniform(-0.5, 0.5, (2, 4))
+        for world in worlds:
+            world.step(speed, heading)
+        flying = worlds[1].active & worlds[0].active
+        assert flying.sum() >= 6
+        for field in ("sinr_db", "level", "measured_level", "measured_xy"):
+            np.testing.assert_array_equal(getattr(worlds[1], field)[flying],
+                                          getattr(worlds[0], field)[flying])
+        truth = RadioModel(shadowed).evaluate(worlds[1].position, worlds[1].jammer()).sinr_db
+        np.testing.assert_allclose(worlds[1].sinr_db[flying], truth[flying], rtol=1e-12)
+    assert not worlds[1].measured[0, 2]
