@@ -238,8 +238,8 @@ class VectorWorld:
     def _radio_of_active(self, xy: np.ndarray, active: np.ndarray) -> RadioReading:
         """The radio at points ``xy`` (E, J, ..., 2) of the active UAVs (``active`` (E, J)),
         each under its environment's jammer; zero for the others, whose missions ended and
-        whose readings are never read again. Evaluating them anyway cost a city of 256 UAVs
-        most of an episode's time, while its last few UAVs flew on alone."""
+        whose readings are never read again. Evaluating them anyway cost the city's 256-UAV
+        episode about a fifth of its time, while its last few UAVs flew on alone."""
         env, uav = np.nonzero(active)
         points = xy[env, uav]
         per_point = (-1,) + (1,) * (points.ndim - 2)
