@@ -773,7 +773,8 @@ def map_history(events: list[dict[str, Any]]) -> list[str]:
 
     def close_run() -> None:
         if len(run) > 2:
-            lines.append(f"  ... {len(run) - 2} {run_kind} ...")
+            between = len(run) - 2
+            lines.append(f"  ... {between} {run_kind}{'s' if between > 1 else ''} ...")
         if len(run) > 1:
             lines.append(run[-1])
         run.clear()
@@ -782,7 +783,7 @@ def map_history(events: list[dict[str, Any]]) -> list[str]:
         kind = event["type"]
         provisional = kind == "sinr_weights_published" and event.get("provisional", False)
         if kind == "jammer_estimated" or provisional:
-            what = "provisional maps" if provisional else "refinements"
+            what = "provisional map" if provisional else "refinement"
             if what != run_kind:
                 close_run()
                 run_kind = what
@@ -793,7 +794,7 @@ def map_history(events: list[dict[str, Any]]) -> list[str]:
         elif kind in ("jammer_changed", "change_detected"):
             close_run()
             lines.append(describe_event(event))
-        elif kind == "sinr_weights_published" and not (run and run_kind == "refinements"):
+        elif kind == "sinr_weights_published" and not (run and run_kind == "refinement"):
             close_run()
             lines.append(describe_event(event))
     close_run()

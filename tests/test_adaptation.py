@@ -236,6 +236,8 @@ def test_the_report_shows_a_run_of_refinements_as_its_first_and_last_map():
     assert lines == ["provisional SINR map v1 published", "  ... 2 provisional maps ...",
                      "provisional SINR map v4 published", lines[3]]
     assert lines[3].startswith("map v5, jammer at")
+    # One between the first and the last: singular.
+    assert map_history(provisional[1:])[1] == "  ... 1 provisional map ..."
 
 
 def test_the_mapper_summary_says_when_the_map_in_service_is_provisional():
