@@ -68,6 +68,12 @@ class TruthGrid:
         truth = self.radio.evaluate(self.xy, jammer_params(self.scenario, setting)).level
         return float((predict_levels(network, self.features) == truth).mean())
 
+    def moved(self, setting: JammerSetting) -> float:
+        """The share of the area whose level the jammer of ``setting`` changes."""
+        quiet = self.radio.evaluate(self.xy).level
+        return float((self.radio.evaluate(self.xy, jammer_params(self.scenario, setting)).level
+                      != quiet).mean())
+
 
 def _mapper(scenario: Scenario, now: list[float], seed: int) -> OnlineSinrMapper:
     network, card = load_network(sinr_map_for(scenario.name), {"kind": "sinr_map"})
@@ -105,7 +111,7 @@ def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
     mapper.close()
     return {"setting": setting, "detected": detected, "first_map": first_map,
             "accuracy_first": accuracy_first, "accuracy_30": accuracy_30, "evidence": evidence,
-            "accuracy_survey": survey}
+            "accuracy_survey": survey, "moved": truth.moved(setting)}
 
 
 def _contradicts(mapper: OnlineSinrMapper, uploads: MeasurementBatch) -> bool:
@@ -182,6 +188,9 @@ def adaptation_figures(scenario: Scenario) -> list[Figure]:
     r50, r90 = _percentiles(reaction)
     never = sum(r["evidence"] is None for r in trials)
     m50, m90 = _percentiles([r["first_map"] for r in trials])
+    # What a change that goes unnoticed changed: a weak jammer moves few levels, near the edges.
+    missed = [100 * r["moved"] for t, r in zip(detection, trials, strict=True) if t is None]
+    caught = [100 * r["moved"] for t, r in zip(detection, trials, strict=True) if t is not None]
     first = [r["accuracy_first"] for r in trials if r["accuracy_first"] is not None]
     at_30 = [r["accuracy_30"] for r in trials]
     return [
@@ -190,6 +199,11 @@ def adaptation_figures(scenario: Scenario) -> list[Figure]:
         Figure(f"{name}: no report contradicts the map in {AFTER_S:.0f} s", never, "count"),
         Figure(f"{name}: detection after the first contradicting report, median s", r50, "s"),
         Figure(f"{name}: detection after the first contradicting report, p90 s", r90, "s"),
+        Figure(f"{name}: changes never detected in {AFTER_S:.0f} s", len(missed), "count"),
+        Figure(f"{name}: levels moved by a change never detected, most %",
+               max(missed, default=0.0), "%"),
+        Figure(f"{name}: levels moved by a change detected, least %",
+               min(caught, default=0.0), "%"),
         Figure(f"{name}: first corrected map, median s", m50, "s", 5, lower_is_better=True),
         Figure(f"{name}: first corrected map, p90 s", m90, "s", 10, lower_is_better=True),
         Figure(f"{name}: first map's accuracy vs truth, median %",
@@ -238,7 +252,8 @@ def localization_figures(scenario: Scenario) -> list[Figure]:
     return [
         Figure(f"{name}: error median m", e50, "m", 5, lower_is_better=True),
         Figure(f"{name}: error p90 m (no estimate = inf)", e90, "m", 10, lower_is_better=True),
-        Figure(f"{name}: power error median dB", float(np.median(power_errors)), "dB", 2,
+        Figure(f"{name}: power error median dB",
+               float(np.median(power_errors)) if power_errors else np.inf, "dB", 2,
                lower_is_better=True),
         Figure(f"{name}: no estimate, of {LOCALIZATION_SETTINGS}", failures, "count"),
     ]
