@@ -63,16 +63,22 @@ class TruthGrid:
         self.features = scenario_features(scenario, self.xy)
         self.radio = RadioModel(scenario)
         self.scenario = scenario
+        self._levels: dict[JammerSetting | None, np.ndarray] = {}
+
+    def levels(self, setting: JammerSetting | None) -> np.ndarray:
+        """The true level at every point with the jammer of ``setting`` (None: none), worked
+        out once per setting: a trial scores several maps against the same truth."""
+        if setting not in self._levels:
+            self._levels[setting] = self.radio.evaluate(
+                self.xy, jammer_params(self.scenario, setting)).level
+        return self._levels[setting]
 
     def accuracy(self, network: SinrMapNetwork, setting: JammerSetting | None) -> float:
-        truth = self.radio.evaluate(self.xy, jammer_params(self.scenario, setting)).level
-        return float((predict_levels(network, self.features) == truth).mean())
+        return float((predict_levels(network, self.features) == self.levels(setting)).mean())
 
     def moved(self, setting: JammerSetting) -> float:
         """The share of the area whose level the jammer of ``setting`` changes."""
-        quiet = self.radio.evaluate(self.xy).level
-        return float((self.radio.evaluate(self.xy, jammer_params(self.scenario, setting)).level
-                      != quiet).mean())
+        return float((self.levels(setting) != self.levels(None)).mean())
 
 
 def _mapper(scenario: Scenario, now: list[float], seed: int) -> OnlineSinrMapper:
