@@ -90,6 +90,9 @@ class AgentObservation(Message):
     # none at an episode's start). The world simulates the receiver, noise included.
     measured: list[tuple[Coordinate, Coordinate, Level]] = Field(default_factory=list,
                                                                  max_length=MAX_REPORTS)
+    # Where the UAV flies once this mission ends (the next in its mission queue; none when
+    # the world has not planned one), so that its agent prepares that route between decisions.
+    next_destination: Place | None = None
 
     @model_validator(mode="after")
     def _same_length(self) -> AgentObservation:
@@ -102,7 +105,8 @@ class AgentObservation(Message):
     @classmethod
     def of_row(cls, observation: Observation, row: int, episode: int, uav: int,
                measured: list[tuple[float, float, int]] = (),
-               others: np.ndarray | None = None) -> AgentObservation:
+               others: np.ndarray | None = None,
+               next_destination: np.ndarray | None = None) -> AgentObservation:
         """Row ``row`` of ``observation``, with only the others the mask ``others`` (M,)
         keeps (``shared.features.decision_relevant``), in their order; all without it."""
         o = observation
@@ -118,6 +122,8 @@ class AgentObservation(Message):
             others_radius=o.others_radius[row][keep].tolist(),
             others_present=o.others_present[row][keep].tolist(),
             measured=list(measured),
+            next_destination=(None if next_destination is None
+                              else tuple(np.asarray(next_destination, dtype=float).tolist())),
         )
 
     def observation(self) -> Observation:

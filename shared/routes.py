@@ -14,12 +14,14 @@ relaxations (test). scipy's Dijkstra, in C, is fastest for the batches of destin
 training and the in-process flights ask for; but importing scipy's graph module costs a process
 about 31 MiB. An agent routes one UAV to one destination per map, so a single destination is
 swept in numpy instead (``_swept_fields``: about 2.2 ms on icc2021's grid with its margin,
-bench_policy, against Dijkstra's 0.6), and an agent never loads scipy.
+bench_policy, against Dijkstra's 0.6), and an agent never loads scipy. An agent told its next
+destination sweeps that field ahead, a line at a time between decisions (``sweep_ahead``).
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Generator, Iterator
 from typing import NamedTuple
 
 import numpy as np
@@ -105,10 +107,24 @@ class RouteGrid:
             fields = (self._swept_fields(missing[0]) if len(missing) == 1
                       else self._dijkstra(missing))
             for node, field in zip(missing, fields, strict=True):
-                slot = self._free_slot()
-                self.store[slot] = field.reshape(self.rows, self.cols)
-                self.cache[node] = slot
+                self._keep(node, field)
         return np.array([self.cache[node] for node in wanted], dtype=np.int64)
+
+    def sweep_ahead(self, destination: np.ndarray) -> Iterator[None]:
+        """Sweep the field to ``destination`` (2,) into the cache one line at a time, pausing
+        after each: an agent told its next mission prepares the field between decisions, so
+        that the new mission's first decision finds it ready. Nothing to do when cached."""
+        node = int(self.node_of(np.asarray(destination, dtype=np.float64)))
+        if node in self.cache:
+            return
+        field = yield from self._sweeping(node)
+        if node not in self.cache:  # a decision may have needed it first
+            self._keep(node, field)
+
+    def _keep(self, node: int, field: np.ndarray) -> None:
+        slot = self._free_slot()
+        self.store[slot] = field.reshape(self.rows, self.cols)
+        self.cache[node] = slot
 
     def _dijkstra(self, nodes: list[int]) -> np.ndarray:
         from scipy.sparse import coo_matrix  # noqa: PLC0415 (see the module docstring)
@@ -133,13 +149,22 @@ class RouteGrid:
         return dijkstra(self._graph, directed=False, indices=nodes)
 
     def _swept_fields(self, node: int) -> np.ndarray:
+        """The field (1, rows, cols) to one destination, swept at once."""
+        sweep = self._sweeping(node)
+        while True:
+            try:
+                next(sweep)
+            except StopIteration as swept:
+                return swept.value[None]
+
+    def _sweeping(self, node: int) -> Generator[None, None, np.ndarray]:
         """The field to one destination by Gauss-Seidel sweeps until no edge shortens it
-        (2-4 rounds: about one per bend of the routes). A round sweeps the rows down and up,
-        then the columns right and left, each line relaxed from the one before it. The two
-        sweeps along an axis run at once, on two copies of the field stacked together (the
-        second upside down, so that it too runs first to last), and each node keeps the
-        shorter of the two: one numpy call relaxes a line of each, which makes a field about
-        a sixth cheaper than sweeping them one after the other."""
+        (2-4 rounds: about one per bend of the routes), pausing after each line. A round
+        sweeps the rows down and up, then the columns right and left, each line relaxed from
+        the one before it. The two sweeps along an axis run at once, on two copies of the
+        field stacked together (the second upside down, so that it too runs first to last),
+        and each node keeps the shorter of the two: one numpy call relaxes a line of each,
+        which makes a field about a sixth cheaper than sweeping them one after the other."""
         # A border of infinity, so that every line reads three neighbours of each column.
         padded = np.full((self.rows + 2, self.cols + 2), np.inf)
         field = padded[1:-1, 1:-1]
@@ -152,10 +177,10 @@ class RouteGrid:
         while True:
             for lines, weights in zip((padded, padded.T), self._lines, strict=True):
                 both_ways = np.stack([lines, lines[::-1]])
-                _sweep_lines(both_ways, weights)
+                yield from _sweep_lines(both_ways, weights)
                 np.minimum(both_ways[0], both_ways[1][::-1], out=lines)
             if not self.weights.improvable(field):
-                return field[None]
+                return field
 
     def _free_slot(self) -> int:
         if len(self.cache) >= self.cache_size:
@@ -195,10 +220,11 @@ class RouteGrid:
         return value + offset.reshape((-1,) + (1,) * (xy.ndim - 2))
 
 
-def _sweep_lines(stacked: np.ndarray, weights: np.ndarray) -> None:
+def _sweep_lines(stacked: np.ndarray, weights: np.ndarray) -> Iterator[None]:
     """Relax every line of each padded field of ``stacked`` (copies, line, column), in place
     and first to last, from the line before it, by that copy's ``weights`` (copies, lines - 1,
-    columns, 3) in the form of ``from_previous_line``; the borders stay infinite."""
+    columns, 3) in the form of ``from_previous_line``; the borders stay infinite. Pauses
+    after each line."""
     lines = stacked.shape[1] - 2
     neighbours = sliding_window_view(stacked, 3, axis=2)  # [copy, line, c] = columns c-1..c+1
     reached = np.empty((stacked.shape[0], *neighbours.shape[2:]))
@@ -209,3 +235,4 @@ def _sweep_lines(stacked: np.ndarray, weights: np.ndarray) -> None:
         np.minimum(best, reached[..., 2], out=best)
         here = stacked[:, line, 1:-1]
         np.minimum(here, best, out=here)
+        yield

@@ -16,6 +16,7 @@ import torch
 from cloud_service.sinr_mapping import RetrainConfig
 from jamnav.cli import main as jamnav
 from shared.messages import (
+    AgentObservation,
     JammerCommand,
     JammerEstimate,
     JammerInfo,
@@ -24,6 +25,7 @@ from shared.messages import (
     encode,
 )
 from shared.networks import load_network, save_bytes, sha256
+from shared.routes import RouteGrid
 from shared.shipped import VALUE_NET
 from tests.support import running, wait_until
 
@@ -170,3 +172,33 @@ def test_an_agent_refuses_bad_weights_flies_on_with_the_old_ones_and_reports_it(
         (None, "value", 1, 0), (8, "value", 1, 0), (9, "value", 1, 0)]
     assert "sha256" in refusals[0].reason
     assert "(35,)" in refusals[1].reason and "float64" in refusals[2].reason
+
+
+def test_an_agent_told_its_next_mission_has_that_route_ready_before_its_first_decision(
+        scenario, tmp_path, monkeypatch):
+    """The world announces each UAV's next destination with its observations, and the agent
+    sweeps that route field between decisions: with one map all run long, only the very first
+    decision sweeps a field itself (three episodes: three such sweeps without it)."""
+    decision_sweeps = []
+    swept = RouteGrid._swept_fields
+
+    def counted(self, node):
+        decision_sweeps.append(node)
+        return swept(self, node)
+
+    monkeypatch.setattr(RouteGrid, "_swept_fields", counted)
+    announced, flown = {}, {}
+    with running(scenario, tmp_path, mode="perfect", uavs=1, jammer=None,
+                 episodes=3) as system:
+        def seen(sample) -> None:
+            observation = decode(AgentObservation, sample.payload.to_bytes())
+            announced.setdefault(observation.episode, observation.next_destination)
+            flown.setdefault(observation.episode, observation.destination)
+
+        system.sessions[0].declare_subscriber(system.topics.observation(0), seen)
+        wait_until(lambda: system.world.finished, 120)
+    assert len(decision_sweeps) == 1
+    # What was announced is what was flown next: missions come from each episode's seed.
+    pairs = [(announced[episode], flown[episode + 1]) for episode in announced
+             if episode + 1 in flown]
+    assert pairs and all(told == next_flown for told, next_flown in pairs)

@@ -74,3 +74,26 @@ def test_a_swept_field_is_the_route_round_a_wall_not_through_it():
     assert field[2, 2] == pytest.approx(2 + math.sqrt(2), abs=1e-12)
     assert field[1, 1] == 6.0
     assert field[0, 2] == 2.0
+
+
+def test_a_field_swept_ahead_a_line_at_a_time_is_the_field_a_decision_would_sweep():
+    """An agent sweeps its next destination's field between decisions, stopping whenever an
+    observation waits: paused and resumed, the field it leaves in the cache is the one the
+    decision would have swept, and a field already cached costs nothing."""
+    rng = np.random.default_rng(4)
+    covered = rng.random((17, 13)) < 0.7
+    ahead, direct = grid(covered, cost=9.0), grid(covered, cost=9.0)
+    destination = np.array([7.2, 11.6])
+    sweep = ahead.sweep_ahead(destination)
+    lines = 0
+    for _ in sweep:  # paused after every line: a caller may stop anywhere
+        lines += 1
+        assert not ahead.cache  # nothing kept until the field is done
+    # At least two rounds (one to spread, one to confirm), each a sweep of every row and
+    # every column but the first.
+    assert lines >= 2 * ((17 - 1) + (13 - 1))
+    xy = rng.uniform(0, 12, size=(1, 40, 2))
+    np.testing.assert_array_equal(ahead.distance(xy, destination[None]),
+                                  direct.distance(xy, destination[None]))
+    assert len(ahead.cache) == 1  # the decision found it: no second field
+    assert list(ahead.sweep_ahead(destination)) == []

@@ -225,6 +225,7 @@ class WorldService:
         self.mailbox = Mailbox(config.uavs)
         self.desk = JammerDesk(scenario, jammer, self.dropped, topics.jammer_control)
         self.episode = config.first_episode
+        self.next_destinations: np.ndarray  # (uavs, 2): drawn at each episode's start
         self.steps = 0
         self.stepping_seconds = 0.0
         self.missed = 0  # live agent, no action in time
@@ -307,6 +308,11 @@ class WorldService:
         world, config = self.world, self.config
         seed = episode_seed(config.seed, self.episode)
         world.reset([0], [seed])
+        # Each UAV's next mission, announced with this one's observations so that its agent
+        # prepares the route before it needs it (missions are drawn from the episode's own
+        # seed, so drawing them early changes nothing).
+        _, self.next_destinations = world.sampler.sample(
+            episode_seed(config.seed, self.episode + 1), world.num_uavs)
         period = 1.0 / config.rate
         tick = time.monotonic()  # realtime: when the current step ends
         while True:
@@ -358,7 +364,8 @@ class WorldService:
         observation, relevant = fleet_observation(w, self.scenario)
         for uav in sorted(active):
             self.observation_pubs[uav].put(encode(AgentObservation.of_row(
-                observation, uav, self.episode, uav, self._reports(uav), relevant[uav])))
+                observation, uav, self.episode, uav, self._reports(uav), relevant[uav],
+                self.next_destinations[uav])))
         self._publish_state()
 
     def _reports(self, uav: int) -> list[tuple[float, float, int]]:
