@@ -60,11 +60,6 @@ from uav_agent.uploads import (
 
 ROLE = "agent"
 TIMINGS_KEPT = 4096
-# How long a thread that holds the GIL keeps a waiting one out (Python's default is 5 ms). An
-# agent's main thread sweeps its next route field between decisions, and its maps thread builds
-# rasters for tens of milliseconds: the zenoh thread that delivers an observation, or the
-# deciding thread, must not wait that long for its turn.
-SWITCH_INTERVAL_S = 1e-4
 
 
 class Models:
@@ -408,7 +403,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"agent: error: {exc}", file=sys.stderr)
         return 2
     log = bus.setup_logging(f"agent-{'?' if args.uav is None else args.uav}")
-    sys.setswitchinterval(SWITCH_INTERVAL_S)
     session, stop = bus.service_session("agent", endpoint, login)
     if session is None:
         return 1
