@@ -37,7 +37,7 @@ from shared.networks import SinrMapNetwork, ValueNetwork, WeightsError
 from shared.orca import orca_velocities
 from shared.radio import JammerParams, RadioModel
 from shared.rewards import RewardModel, smallest_gaps
-from shared.routes import RouteGrid
+from shared.routes import FIELDS_KEPT, RouteGrid
 from shared.scenario import Scenario
 
 
@@ -85,6 +85,9 @@ class LevelRaster:
     def __init__(self, levels: np.ndarray, x0: float, y0: float, spacing: float):
         self.levels = np.ascontiguousarray(levels, dtype=np.int8)
         self.x0, self.y0, self.spacing = x0, y0, spacing
+        # How many route fields the routing grid keeps (set before its first use): a fleet's
+        # destinations in-process, far fewer in an agent.
+        self.route_fields_kept = FIELDS_KEPT
         self._routes: RouteGrid | None = None
 
     @classmethod
@@ -119,7 +122,8 @@ class LevelRaster:
             stride = max(1, round(scenario.policy.route_cell_m / self.spacing))
             covered = self.levels[::stride, ::stride] > 0
             self._routes = RouteGrid(covered, self.x0, self.y0, self.spacing * stride,
-                                     scenario.policy.route_uncovered_cost)
+                                     scenario.policy.route_uncovered_cost,
+                                     self.route_fields_kept)
         return self._routes
 
 

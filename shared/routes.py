@@ -72,11 +72,16 @@ class _EdgeWeights(NamedTuple):
         return forward, backward
 
 
+# Distance fields a route grid keeps by default: every destination of a batch of environments
+# (an in-process evaluation's whole fleet, training's environments in flight).
+FIELDS_KEPT = 4096
+
+
 class RouteGrid:
     """The coarse routing graph of one map raster, and a cache of distance fields on it."""
 
     def __init__(self, covered: np.ndarray, x0: float, y0: float, cell: float,
-                 uncovered_cost: float, cache_size: int = 4096):
+                 uncovered_cost: float, cache_size: int = FIELDS_KEPT):
         self.rows, self.cols = covered.shape
         self.x0, self.y0, self.cell = x0, y0, cell
         self.weights = _EdgeWeights.of(np.where(covered, 1.0, uncovered_cost), cell)
