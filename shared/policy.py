@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import NamedTuple, Protocol
 
 import numpy as np
@@ -165,6 +165,11 @@ class RasterMap:
         subset = copy.copy(self)  # the rasters and their route caches are shared, not copied
         subset.which = self.which[rows]
         return subset
+
+    def sweep_ahead(self, destination: np.ndarray) -> Iterator[None]:
+        """The route field to ``destination`` (2,) on the first raster (an agent's only one),
+        swept into its cache a line at a time (``RouteGrid.sweep_ahead``)."""
+        return self.first.routes(self.scenario).sweep_ahead(destination)
 
     def route_distance(self, xy: np.ndarray, destination: np.ndarray) -> np.ndarray:
         """Route distance (N, ...) from ``xy`` (N, ..., 2) to each row's destination."""

@@ -109,7 +109,7 @@ class Models:
         the first decision on the map would sweep it otherwise."""
         destination, policy = self.destination, self.policy
         if destination is not None and policy is not None and policy.options.route_distance:
-            radio_map.route_distance(np.array([[destination]]), np.array([destination]))
+            deque(radio_map.sweep_ahead(np.array(destination, dtype=np.float64)), maxlen=0)
 
     def commit(self, update: ValueWeights | SinrMap,
                built: LookaheadPolicy | RasterMap | None) -> None:
@@ -273,8 +273,7 @@ class AgentService:
             return
         if self.ahead != (radio_map, destination):
             self.ahead = (radio_map, destination)
-            self.ahead_lines = radio_map.first.routes(self.scenario).sweep_ahead(
-                np.array(destination, dtype=np.float64))
+            self.ahead_lines = radio_map.sweep_ahead(np.array(destination, dtype=np.float64))
         if self.ahead_lines is None:
             return
         for _ in self.ahead_lines:
