@@ -33,7 +33,7 @@ def one(found: list[dict], role: str, ident: str = "0") -> dict | None:
 def test_killed_cloud_comes_back_with_its_memory_and_no_measurement_is_lost(
         supervisor, capsys, tmp_path):
     endpoint, run_dir = free_endpoint(), tmp_path / "run"
-    process = supervisor("--uavs", "3", "--realtime", "--rate", "20", "--duration", "32",
+    process = supervisor("--uavs", "3", "--realtime", "--rate", "20", "--duration", "120",
                          "--map", "perfect", "--no-figures", "--endpoint", endpoint,
                          "--run-dir", str(run_dir))
 
@@ -62,6 +62,10 @@ def test_killed_cloud_comes_back_with_its_memory_and_no_measurement_is_lost(
              if p["role"] == "agent"}
     assert all(after[ident] > before for ident, before in decisions.items())
     assert sum(after.values()) - sum(decisions.values()) > 150
+    # Uploads refused while the cloud was away are sent again once it answers.
+    wait_until(lambda: stored() > restarted["details"]["stored"], 60,
+               "uploads stored by the restarted cloud")
+    process.send_signal(signal.SIGINT)
     out, err = process.communicate(timeout=120)
     assert process.returncode == 0, err[-2000:]
     report = json.loads((run_dir / "report.json").read_text())
