@@ -13,6 +13,7 @@ from functools import cached_property
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from shared.shadowing import MAX_GRID_SIDE, field_grid
@@ -56,6 +57,11 @@ class Area(_Strict):
 
     def contains(self, x: float, y: float) -> bool:
         return self.x_min <= x <= self.x_max and self.y_min <= y <= self.y_max
+
+    def outside(self, xy: np.ndarray) -> np.ndarray:
+        """Which points (..., 2) lie outside the area (a NaN point does not)."""
+        x, y = xy[..., 0], xy[..., 1]
+        return (x < self.x_min) | (x > self.x_max) | (y < self.y_min) | (y > self.y_max)
 
     @property
     def square_metres(self) -> float:

@@ -20,6 +20,7 @@ from cloud_service.sinr_mapping import (
     PublishedWeights,
     RetrainConfig,
     _Change,
+    labelled_batch,
     simulated_measurements,
 )
 from cloud_service.sinr_memory import SinrMemory
@@ -32,6 +33,7 @@ from shared.measurements import (
     accuracy_of,
     gbs_features,
     predict_levels,
+    predict_probabilities,
     scenario_features,
 )
 from shared.networks import from_bytes
@@ -312,6 +314,25 @@ def test_no_detection_with_no_jammer_nor_with_a_still_jammer_once_located(mappin
     assert len(detections) == 2 and detections[1]["t"] - 300.0 <= 10.0
     located = [e for e in mapper.events if e["type"] == "jammer_estimated"]
     assert math.hypot(located[-1]["x"] - moved.x, located[-1]["y"] - moved.y) <= 5.0
+
+
+def test_reports_from_outside_the_area_are_no_evidence_of_a_change(mapping_scenario,
+                                                                   no_jammer_map):
+    """The map is learned over the area and extrapolates past its edge: one UAV's run of
+    reports out there that the map rules out raises no change. The same run inside does."""
+    network, accuracy = no_jammer_map
+    area = mapping_scenario.area
+    rng = np.random.default_rng(3)
+    for y, changes in ((area.y_max + 3.0, 0), (area.y_max - 8.0, 1)):
+        mapper, now = _online(mapping_scenario, network, accuracy, background=False)
+        xy = np.stack([np.linspace(-20.0, 20.0, 80), np.full(80, y)], axis=1)
+        # At every point the level the map finds least probable: about 1.9 nats each.
+        unlikely = predict_probabilities(network, scenario_features(mapping_scenario,
+                                                                     xy)).argmin(axis=1)
+        mapper.ingest(labelled_batch(mapping_scenario, xy, unlikely, rng,
+                                     time=np.arange(80) * 0.1, source="uav-0"))
+        assert _types(mapper).count("change_detected") == changes, y
+        mapper.close()
 
 
 def test_background_adaptation_publishes_without_blocking(mapping_scenario, no_jammer_map):
