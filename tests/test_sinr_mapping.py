@@ -484,6 +484,11 @@ def test_fit_sinr_writes_weights_and_card(small_map):
     assert card["samples"] == 2000 and card["seed"] == 4 and card["steps"] == 300
     assert card["jammer"]["power_w"] == 1.0 and 0.5 < card["accuracy"] <= 1.0
     assert {"command", "wall_seconds", "git_commit", "sha256", "architecture"} <= card.keys()
+    # Per true level: the overall accuracy is their mean, weighted by the area each holds.
+    by_level, shares = card["accuracy_by_true_level"], card["true_level_shares"]
+    assert len(by_level) == len(shares) == 3 and sum(shares) == pytest.approx(1.0)
+    assert sum(a * w for a, w in zip(by_level, shares, strict=True)) == pytest.approx(
+        card["accuracy_on_true_levels"])
 
 
 def test_sinr_model_predicts_levels_in_the_true_map_shape(capsys, small_map, scenario):
