@@ -82,7 +82,7 @@ class TruthGrid:
 
 
 def _mapper(scenario: Scenario, now: list[float], seed: int) -> OnlineSinrMapper:
-    network, card = load_network(sinr_map_for(scenario.name), {"kind": "sinr_map"})
+    network, card = load_network(sinr_map_for(scenario), {"kind": "sinr_map"})
     memory = SinrMemory(":memory:", MeasurementSpec.of(scenario))
     return OnlineSinrMapper(scenario, memory, network, float(card["accuracy"]),
                             clock=lambda: now[0], background=False, seed=seed)
@@ -149,7 +149,7 @@ def _false_alarms_by_threshold(scenario: Scenario, seed: int) -> dict[float, int
     """Detections the survey map would raise over STILL_S of flight with no jammer, for each
     of THRESHOLDS (the detector alone, reset after each): the figures the scenarios'
     ``online_map.change_threshold`` comments quote."""
-    network, _ = load_network(sinr_map_for(scenario.name), {"kind": "sinr_map"})
+    network, _ = load_network(sinr_map_for(scenario), {"kind": "sinr_map"})
     fleet = Fleet(scenario, UAVS, np.random.default_rng(seed))
     batches = []
     for step in range(int(STILL_S / scenario.timing.step_s)):
@@ -234,7 +234,7 @@ def adaptation_figures(scenario: Scenario) -> list[Figure]:
 def localization_figures(scenario: Scenario) -> list[Figure]:
     """The estimator alone on LOCALIZATION_FLIGHT_S of four UAVs' uploads after a change."""
     dt = scenario.timing.step_s
-    survey, _ = load_network(sinr_map_for(scenario.name), {"kind": "sinr_map"})
+    survey, _ = load_network(sinr_map_for(scenario), {"kind": "sinr_map"})
     errors, power_errors, failures = [], [], 0
     for k in range(LOCALIZATION_SETTINGS):
         rng = np.random.default_rng(1000 + k)

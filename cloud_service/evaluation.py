@@ -43,7 +43,7 @@ from shared.outcomes import Outcome
 from shared.paper import JammerSetting
 from shared.policy import LookaheadPolicy, RasterMap, sinr_network_raster
 from shared.scenario import Scenario
-from shared.shipped import sinr_map_for, value_net_for
+from shared.shipped import NoSurveyMapError, sinr_map_for, value_net_for
 from world_sim.core import VectorWorld
 
 METHODS = ("proposed", "perfect", "outdated", "orca", "straight")
@@ -195,8 +195,11 @@ def evaluate(
             policy = load_policy(scenario, value_net_for(
                 value_net, scenario.area.square_metres, uavs or scenario.missions.uav_count))
             if method == "proposed":
-                online = OnlineMaps(scenario, sinr_map or sinr_map_for(scenario.name),
-                                    memory_dir or Path(scratch))
+                try:
+                    survey = sinr_map or sinr_map_for(scenario)
+                except NoSurveyMapError as exc:
+                    raise EvaluationError(str(exc)) from None
+                online = OnlineMaps(scenario, survey, memory_dir or Path(scratch))
                 maps = online
             else:
                 maps = perfect_maps(scenario) if method == "perfect" else outdated_maps(scenario)

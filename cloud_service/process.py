@@ -58,7 +58,6 @@ from shared.scenario import Scenario, ScenarioError, load_scenario
 from shared.shipped import (
     DEFAULT_VALUE_NET,
     EXTENDED_VALUE_NET,
-    SINR_MAP_NO_JAMMER,
     VALUE_NET_HELP,
     sinr_map_for,
     value_net_path,
@@ -113,7 +112,7 @@ def latest_saved(directory: Path) -> Path | None:
 class CloudService:
     def __init__(self, session, topics: Topics, scenario: Scenario, mode: MapMode,
                  run_dir: Path, log: logging.Logger, *, value_net: Path = EXTENDED_VALUE_NET,
-                 sinr_net: Path = SINR_MAP_NO_JAMMER, jammer: JammerInfo | None = None,
+                 sinr_net: Path | None = None, jammer: JammerInfo | None = None,
                  retrain: RetrainConfig | None = None):
         self.session, self.topics, self.scenario, self.mode, self.log = (
             session, topics, scenario, mode, log)
@@ -129,7 +128,7 @@ class CloudService:
         self.mapper: OnlineSinrMapper | None = None
         self._events_seen = 0
         if mode == "online":
-            self.sinr = self._start_mapper(sinr_net, retrain)
+            self.sinr = self._start_mapper(sinr_net or sinr_map_for(scenario), retrain)
         else:
             self.raster_maps = RasterMaps(scenario)
             self.sinr = raster_map(scenario, self.raster_maps, mode, 1, jammer)
@@ -340,9 +339,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--value-net", default=DEFAULT_VALUE_NET, metavar="NAME|PATH",
                         help=f"{VALUE_NET_HELP}; the cloud does not know the fleet: "
                              f"{DEFAULT_VALUE_NET} unless told (`jamnav up` tells it)")
-    parser.add_argument("--sinr-net", default=None, metavar="PATH",
+    parser.add_argument("--sinr-map", "--sinr-net", dest="sinr_net", default=None, metavar="PATH",
                         help="the survey's no-jammer SINR map (online; default: the shipped "
-                             "one of the scenario)")
+                             "one of the scenario's radio world)")
     parser.add_argument("--retrain-samples", type=int, default=None, metavar="N",
                         help="post-change measurements a retraining waits for")
     jam = parser.add_mutually_exclusive_group()
@@ -383,6 +382,9 @@ def main(argv: list[str] | None = None) -> int:
             if args.retrain_samples < 2:
                 raise ValueError("--retrain-samples must be at least 2")
             retrain = RetrainConfig(min_samples=args.retrain_samples)
+        sinr_net = None
+        if args.map == "online":
+            sinr_net = Path(args.sinr_net) if args.sinr_net else sinr_map_for(scenario)
         topics = Topics(args.prefix)
         endpoint = endpoint_from(args.endpoint)
         login = access.login_for(args.credentials, access.CLOUD)
@@ -396,7 +398,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             cloud = CloudService(session, topics, scenario, args.map, Path(args.run_dir), log,
                                  value_net=value_net_path(args.value_net),
-                                 sinr_net=Path(args.sinr_net or sinr_map_for(scenario.name)),
+                                 sinr_net=sinr_net,
                                  jammer=jammer, retrain=retrain)
         except (WeightsError, ValueError) as exc:
             print(f"cloud: error: {exc}", file=sys.stderr)

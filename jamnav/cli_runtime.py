@@ -70,6 +70,31 @@ def _check_value_network(path: str, scenario) -> None:
         raise UsageError(f"--model: {exc}") from None
 
 
+def _survey_map(args: argparse.Namespace, scenario) -> Path | None:
+    """The survey map the cloud starts the online map from: ``--sinr-map``, checked now, or
+    the shipped one of the scenario's radio world; None for the other maps."""
+    from shared.measurements import MeasurementSpec
+    from shared.networks import WeightsError, load_network
+    from shared.shipped import NoSurveyMapError, sinr_map_for
+
+    if args.map != "online":
+        if args.sinr_map is not None:
+            raise UsageError("--sinr-map is where the online map starts: it needs --map online")
+        return None
+    if args.sinr_map is None:
+        try:
+            return sinr_map_for(scenario)
+        except NoSurveyMapError as exc:
+            raise UsageError(str(exc)) from None
+    spec = MeasurementSpec.of(scenario)
+    try:
+        load_network(Path(args.sinr_map), {"kind": "sinr_map", "input_size": spec.feature_size,
+                                           "levels": spec.level_count})
+    except WeightsError as exc:
+        raise UsageError(f"--sinr-map: {exc}") from None
+    return Path(args.sinr_map)
+
+
 def _second_router(args: argparse.Namespace, endpoint: str) -> tuple[str | None, str | None]:
     """``--routers 2``: the agents' router and the TLS link between the routers, by default
     on the two ports after ``endpoint``."""
@@ -118,6 +143,7 @@ def cmd_up(args: argparse.Namespace) -> int:
             raise UsageError(f"--swap-to {swap_to!r}: position outside the area")
     if args.model is not None:
         _check_value_network(args.model, scenario)
+    survey = _survey_map(args, scenario)
     check_range("--retrain-samples", args.retrain_samples, 2)
     run_dir = output_path("--run-dir", args.run_dir or time.strftime("runs/up-%Y%m%d-%H%M%S"),
                           directory=True)
@@ -140,7 +166,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         seed=args.seed, report=Path(args.report) if args.report else None,
         swap_at=args.swap_jammer_at, swap_to=swap_to,
         retrain_samples=args.retrain_samples, figures=not args.no_figures,
-        model=value_net_for(args.model, scenario.area.square_metres, uavs),
+        model=value_net_for(args.model, scenario.area.square_metres, uavs), sinr_map=survey,
         secure=args.secure or args.credentials is not None,
         credentials=Path(args.credentials) if args.credentials else None,
         routers=args.routers, agent_endpoint=agent_endpoint, link_endpoint=link_endpoint,
@@ -415,6 +441,9 @@ def register(commands) -> None:
     up.add_argument("--seed", type=int, default=0)
     up.add_argument("--model", default=None, metavar="NAME|PATH",
                     help=f"the {VALUE_NET_HELP} the cloud serves")
+    up.add_argument("--sinr-map", default=None, metavar="PATH",
+                    help="the survey's no-jammer SINR map the online map starts from "
+                         "(default: the shipped one of the scenario's radio world)")
     up.add_argument("--run-dir", default=None, metavar="DIR",
                     help="logs, report, figures, SINR maps (default runs/up-<time>)")
     up.add_argument("--report", default=None, metavar="FILE",

@@ -90,6 +90,7 @@ class UpConfig:
     swap_to: str | None = None  # X,Y,P[,H] or "off"
     retrain_samples: int | None = None
     model: Path | None = None  # the value network the cloud serves
+    sinr_map: Path | None = None  # the survey map the online map starts from
     figures: bool = True
     command: str = "jamnav up"
     secure: bool = False  # logins and access rules enforced by the router
@@ -229,6 +230,8 @@ class Supervisor:
                 argv += ["--retrain-samples", str(c.retrain_samples)]
             if c.model is not None:
                 argv += ["--value-net", str(c.model.resolve())]
+            if c.sinr_map is not None:
+                argv += ["--sinr-map", str(c.sinr_map.resolve())]
             return argv
         if child.role == "agent":
             outbox = ["--outbox-dir", str(c.run_dir / OUTBOX_DIR)] if c.durable_outboxes else []

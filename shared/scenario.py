@@ -257,6 +257,19 @@ class Scenario(_Strict):
                                  f"(at most {MAX_GRID_SIDE}): raise field_spacing_m")
         return self
 
+    def survey_world(self) -> dict[str, Any]:
+        """What a no-jammer SINR map learned from a survey depends on: where the survey flies,
+        the radio world it measures (layout, channel, shadowing, the receivers' noise) and the
+        features the map reads. Two scenarios that agree on it can share a survey map;
+        missions, rewards, the policy's planning values and the jammer cannot change one."""
+        return {"area": self.area.model_dump(), "gbs": self.gbs.model_dump(),
+                "altitude_m": self.uav.altitude_m,
+                "measurement_noise_db": self.uav.measurement_noise_db,
+                "channel": self.channel.model_dump(),
+                "shadowing": None if self.shadowing is None else self.shadowing.model_dump(),
+                "nearby_gbs": self.policy.nearby_gbs,
+                "nearest_gbs_position": self.policy.nearest_gbs_position}
+
     @property
     def connectivity_check_steps(self) -> int:
         return self.rewards.connectivity_check_every_steps or self.timing.disconnection_limit_steps

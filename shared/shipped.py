@@ -4,6 +4,10 @@ trained by the project's commands)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from shared.scenario import Scenario
 
 
 def shipped_dir(name: str) -> Path:
@@ -23,14 +27,36 @@ SINR_MAP_NO_JAMMER = MODELS_DIR / "sinr_map_no_jammer.safetensors"
 SINR_MAP_NO_JAMMER_SHADOWED = MODELS_DIR / "sinr_map_no_jammer_shadowed.safetensors"
 SINR_MAP_NO_JAMMER_CITY = MODELS_DIR / "sinr_map_no_jammer_city.safetensors"
 
-# The survey map (no jammer) learned in each scenario's world; other scenarios share icc2021's.
-_SURVEY_MAPS = {"icc2021-shadowed": SINR_MAP_NO_JAMMER_SHADOWED,
+# The survey map (no jammer) shipped for each shipped scenario's radio world.
+_SURVEY_MAPS = {"icc2021": SINR_MAP_NO_JAMMER, "icc2021-shadowed": SINR_MAP_NO_JAMMER_SHADOWED,
                 "city": SINR_MAP_NO_JAMMER_CITY}
 
 
-def sinr_map_for(scenario_name: str) -> Path:
-    """The shipped no-jammer SINR map learned from measurements in the named scenario."""
-    return _SURVEY_MAPS.get(scenario_name, SINR_MAP_NO_JAMMER)
+class NoSurveyMapError(ValueError):
+    """No shipped survey map was learned in a scenario's radio world."""
+
+
+def sinr_map_for(scenario: Scenario) -> Path:
+    """The shipped no-jammer SINR map learned from a survey in ``scenario``'s radio world
+    (``Scenario.survey_world``), whatever the scenario is called: a copy of a shipped scenario
+    with other missions or planning values shares its map. A world no shipped map was learned
+    in raises ``NoSurveyMapError``: a map of another world would be flown as if it were
+    right (icc2021's map in icc2021-shadowed's world: 84 % success instead of 98 %)."""
+    from shared.scenario import load_scenario  # noqa: PLC0415 (shared.scenario imports us)
+
+    world = scenario.survey_world()
+    differences = {}
+    for name, path in _SURVEY_MAPS.items():
+        shipped = load_scenario(name).survey_world()
+        if shipped == world:
+            return path
+        differences[name] = [key for key in world if world[key] != shipped[key]]
+    closest = min(differences, key=lambda name: len(differences[name]))
+    raise NoSurveyMapError(
+        f"no shipped survey map was learned in the radio world of scenario {scenario.name!r} "
+        f"(it differs from {closest}'s in {', '.join(differences[closest])}): fit one with "
+        f"`jamnav fit-sinr --scenario FILE --no-jammer --out MAP.safetensors` and pass it "
+        f"with --sinr-map MAP.safetensors")
 
 
 EXTENDED_CROWD_VALUE_NET = MODELS_DIR / "value_net_extended_crowd.safetensors"

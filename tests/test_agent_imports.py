@@ -23,7 +23,7 @@ from shared.shipped import VALUE_NET, sinr_map_for
 
 scenario = load_scenario()
 models = uav_agent.process.Models(scenario, logging.getLogger("agent"))
-value, sinr = VALUE_NET.read_bytes(), sinr_map_for(scenario.name).read_bytes()
+value, sinr = VALUE_NET.read_bytes(), sinr_map_for(scenario).read_bytes()
 models.accept(ValueWeights(version=1, sha256=sha256(value), data=value))
 models.accept(SinrMap(version=1, sha256=sha256(sinr), data=sinr, mode="online"))
 seen = AgentObservation(

@@ -17,7 +17,7 @@ def test_an_agent_keeps_a_few_route_fields_however_many_missions_it_flies(scenar
     in-process flight keeps thousands (a fleet's destinations). Twelve missions on one map:
     without the bound, twelve fields."""
     models = Models(scenario, logging.getLogger("agent"))
-    value, sinr = EXTENDED_VALUE_NET.read_bytes(), sinr_map_for(scenario.name).read_bytes()
+    value, sinr = EXTENDED_VALUE_NET.read_bytes(), sinr_map_for(scenario).read_bytes()
     models.accept(ValueWeights(version=1, sha256=sha256(value), data=value))
     models.accept(SinrMap(version=1, sha256=sha256(sinr), data=sinr, mode="online"))
     rng = np.random.default_rng(2)

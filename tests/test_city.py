@@ -52,7 +52,7 @@ def test_city_is_icc2021_tiled_with_its_density_of_uavs(city, icc2021):
              for x, y in icc2021.gbs.positions}
     assert set(map(tuple, city.gbs.positions)) == tiled
     assert len(city.gbs.positions) == 192
-    assert sinr_map_for("city") == SINR_MAP_NO_JAMMER_CITY and SINR_MAP_NO_JAMMER_CITY.is_file()
+    assert sinr_map_for(city) == SINR_MAP_NO_JAMMER_CITY and SINR_MAP_NO_JAMMER_CITY.is_file()
 
 
 def test_reuse_gives_each_block_a_channel_shared_only_300_m_away(city):

@@ -11,6 +11,7 @@ import socket
 import pytest
 
 from jamnav.cli import main
+from shared.scenario import SCENARIO_DIR
 from shared.shipped import SINR_MAP_NO_JAMMER, VALUE_NET
 
 VALUE = str(VALUE_NET)
@@ -36,7 +37,8 @@ def _free_port() -> int:
 # {tmp}: the test's directory; {file}: a regular file; {dir}, {tmp}/dir.png and
 # {tmp}/dir.safetensors: directories; {binary}: a file that is not UTF-8; {bools}: points
 # given as JSON booleans; {extended_run}, {broken_run}, {older_run}: checkpoints train --resume
-# cannot use; {port}: a free loopback port (no router behind it).
+# cannot use; {port}: a free loopback port (no router behind it); {other_world}: a scenario
+# in a radio world no shipped survey map was learned in.
 CASES = [
     # scenario show
     (["scenario", "show", "--scenario", "nope"], 2),
@@ -154,6 +156,10 @@ CASES = [
     (["up", "--model", "{binary}"], 2),
     (["up", "--model", SINR_MAP], 2),
     (["up", "--swap-to", "0,0,1"], 2),
+    (["up", "--scenario", "{other_world}"], 2),
+    (["up", "--map", "perfect", "--sinr-map", SINR_MAP], 2),
+    (["up", "--sinr-map", VALUE], 2),
+    (["eval", "--scenario", "{other_world}", "--method", "proposed"], 2),
     (["up", "--rate", "20"], 2),
     (["status", "--endpoint", "tcp/127.0.0.1:notaport"], 2),
     (["status", "--endpoint", "foo/bar"], 2),
@@ -202,7 +208,12 @@ def places(tmp_path, monkeypatch):
     older = tmp_path / "older_run" / "checkpoint"  # from before checkpoints were scored
     older.mkdir(parents=True)
     (older / "progress.json").write_text(json.dumps({"config": {"method": "paper"}}))
+    shadowed = (SCENARIO_DIR / "icc2021-shadowed.toml").read_text(encoding="utf-8")
+    assert "gbs_sigma_db = 3.0" in shadowed
+    (tmp_path / "other_world.toml").write_text(
+        shadowed.replace("gbs_sigma_db = 3.0", "gbs_sigma_db = 4.0"), encoding="utf-8")
     return {
+        "other_world": str(tmp_path / "other_world.toml"),
         "tmp": str(tmp_path), "file": str(tmp_path / "file"), "dir": str(tmp_path / "dir"),
         "binary": str(tmp_path / "binary"), "bools": str(tmp_path / "bools.json"),
         "extended_run": str(tmp_path / "extended_run"),

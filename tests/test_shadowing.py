@@ -12,7 +12,12 @@ from cloud_service.sinr_mapping import measurements_at
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import load_scenario
 from shared.shadowing import ShadowingField, shadowing_field
-from shared.shipped import SINR_MAP_NO_JAMMER, SINR_MAP_NO_JAMMER_SHADOWED, sinr_map_for
+from shared.shipped import (
+    SINR_MAP_NO_JAMMER,
+    SINR_MAP_NO_JAMMER_SHADOWED,
+    NoSurveyMapError,
+    sinr_map_for,
+)
 from tests.conftest import variant
 
 SEEDS = range(6)  # 6 seeds x 13 fields: the pooled estimates below spread by ~0.015 (1 sd)
@@ -198,7 +203,24 @@ def test_measurements_are_labelled_with_the_noisy_truth(shadowed):
     assert flipped == pytest.approx(expected, abs=0.03)  # 5,000 labels: sd ~0.6 point
 
 
-def test_survey_map_per_scenario():
-    assert sinr_map_for("icc2021-shadowed") == SINR_MAP_NO_JAMMER_SHADOWED
-    assert sinr_map_for("icc2021") == SINR_MAP_NO_JAMMER
-    assert sinr_map_for("some-other-world") == SINR_MAP_NO_JAMMER
+def test_survey_map_per_radio_world():
+    """The survey map goes with the radio world, not the scenario's name: a renamed copy
+    with other missions or planning values shares its map; a copy in another radio world
+    (here with icc2021-shadowed's name) has none, and is told so in one line."""
+    shadowed, idealized = load_scenario("icc2021-shadowed"), load_scenario("icc2021")
+    assert sinr_map_for(shadowed) == SINR_MAP_NO_JAMMER_SHADOWED
+    assert sinr_map_for(idealized) == SINR_MAP_NO_JAMMER
+    assert sinr_map_for(load_scenario("icc2021-tt6")) == SINR_MAP_NO_JAMMER  # timing only
+    replanned = shadowed.changed({"missions.uav_count": 8, "policy.lookahead_depth": 1,
+                                  "jammer.power_w": 0.5}, name="my-copy")
+    assert sinr_map_for(replanned) == SINR_MAP_NO_JAMMER_SHADOWED
+    # Each refused world, and the closest shipped one named with what sets them apart.
+    for change, named in (({"shadowing.gbs_sigma_db": 4.0}, "icc2021-shadowed's in shadowing"),
+                          ({"channel.path_loss_exponent": 3.0},
+                           "icc2021-shadowed's in channel"),
+                          ({"uav.measurement_noise_db": 0.0}, "icc2021's in shadowing")):
+        with pytest.raises(NoSurveyMapError) as refused:
+            sinr_map_for(shadowed.changed(change, name="icc2021-shadowed"))
+        message = str(refused.value)
+        assert "\n" not in message and "jamnav fit-sinr" in message and "--sinr-map" in message
+        assert f"differs from {named})" in message

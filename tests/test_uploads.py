@@ -283,7 +283,7 @@ def test_new_maps_are_built_beside_the_deciding_thread_and_never_replaced_by_old
     from shared.networks import sha256
     from shared.shipped import sinr_map_for
 
-    data = sinr_map_for(scenario.name).read_bytes()
+    data = sinr_map_for(scenario).read_bytes()
     maps = [SinrMap(version=v, sha256=sha256(data), data=data, mode="online") for v in (1, 2, 3)]
     built_on = []
     real_raster = process.Models._raster
