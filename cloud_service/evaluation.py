@@ -246,6 +246,7 @@ def evaluate(
         report["transient"]["rule"] = ("episodes flown on a map older than the jammer: from a "
                                        "change until a map published since")
         report["events"] = online.mapper.events
+        report["flight_seconds"] = round(online.now, 3)  # what the cloud saw flown, all told
     if swap_every is not None:
         report["jammers"] = [
             {"from_episode": k, "jammer": None if (s := schedule(k)) is None else s._asdict()}
