@@ -269,9 +269,9 @@ class OnlineSinrMapper:
        ``retrain.settle_after``; then the detector re-arms on the final map.
     Without any converged estimate, the DNN alone retrains on ``retrain.min_samples``
     post-change measurements, once the estimate was tried ``retrain.min_tries`` times (the
-    paper's path), with the survey map as its prior where the uploads have not been. Work runs in a worker thread when
-    ``background`` (``ingest`` never waits), inline otherwise (deterministic simulations);
-    each new map calls ``publish(PublishedWeights)``.
+    paper's path), with the survey map as its prior where the uploads have not been. Work
+    runs in a worker thread when ``background`` (``ingest`` never waits), inline otherwise
+    (deterministic simulations); each new map calls ``publish(PublishedWeights)``.
 
     ``clock`` stamps the events: time.time in service, the simulated time in simulations.
     ``estimate``: the jammer estimate behind ``network``, for a cloud that restarts on the map
