@@ -59,6 +59,7 @@ from shared.shipped import (
     DEFAULT_VALUE_NET,
     EXTENDED_VALUE_NET,
     VALUE_NET_HELP,
+    foreign_survey_map,
     sinr_map_for,
     value_net_path,
 )
@@ -169,8 +170,11 @@ class CloudService:
         estimate = estimate_of(card)
         refining_since = card.get("refining_since")
         # The survey map stays the base every estimate corrects, whichever map is in service.
-        base, _ = load_network(sinr_net, {"kind": "sinr_map", "input_size": spec.feature_size,
-                                          "levels": spec.level_count})
+        base, base_card = load_network(sinr_net, {"kind": "sinr_map",
+                                                  "input_size": spec.feature_size,
+                                                  "levels": spec.level_count})
+        if (warning := foreign_survey_map(base_card, self.scenario)) is not None:
+            self.log.warning("%s: %s", sinr_net, warning)
         self.mapper = OnlineSinrMapper(self.scenario, self.memory, network, float(accuracy),
                                        base_network=base,
                                        publish=self._on_retrained, retrain=retrain,

@@ -23,6 +23,7 @@ from shared.measurements import accuracy_of, predict_levels
 from shared.networks import SinrMapNetwork
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
+from shared.shipped import survey_world_digest
 
 BATCH_SIZE = 200  # paper
 LEARNING_RATE = 5e-3  # paper
@@ -147,6 +148,7 @@ def fit_sinr_map(
     counts = np.bincount(true_levels, minlength=scenario.channel.level_count)
     figures = {
         "scenario": scenario.name,
+        "survey_world": survey_world_digest(scenario),
         "jammer": None if jammer is None else dict(jammer._asdict()),
         "seed": seed,
         "samples": samples,

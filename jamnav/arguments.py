@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -57,3 +58,28 @@ def output_path(
     if not os.access(existing, os.W_OK | os.X_OK):
         raise UsageError(f"{option} {text}: {existing} is not writable")
     return path
+
+
+def sinr_map_argument(option: str, path: str, scenario):
+    """(network, card) of a SINR map given on the command line for ``scenario``: refused in
+    one line unless it is a SINR-mapping network of the scenario's features and levels."""
+    from shared.measurements import MeasurementSpec
+    from shared.networks import WeightsError, load_network
+
+    spec = MeasurementSpec.of(scenario)
+    try:
+        return load_network(Path(path), {"kind": "sinr_map", "input_size": spec.feature_size,
+                                         "levels": spec.level_count})
+    except WeightsError as exc:
+        raise UsageError(f"{option}: {exc}") from None
+
+
+def survey_map_argument(option: str, path: str, scenario) -> Path:
+    """``sinr_map_argument`` for a survey map, with a one-line warning on stderr when its card
+    says it was learned in another radio world than ``scenario``'s."""
+    from shared.shipped import foreign_survey_map
+
+    _, card = sinr_map_argument(option, path, scenario)
+    if (warning := foreign_survey_map(card, scenario)) is not None:
+        print(f"jamnav: warning: {option}: {warning}", file=sys.stderr)
+    return Path(path)

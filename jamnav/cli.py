@@ -16,7 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
-from jamnav.arguments import SEED_MAX, UsageError, check_range, output_path
+from jamnav.arguments import (
+    SEED_MAX,
+    UsageError,
+    check_range,
+    output_path,
+    sinr_map_argument,
+    survey_map_argument,
+)
 from jamnav.cli_runtime import _guarded
 from jamnav.cli_runtime import register as register_runtime
 from shared.radio import RadioModel
@@ -164,18 +171,6 @@ def cmd_scenario_show(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load_sinr_map(path: str, scenario: Scenario):
-    from shared.measurements import MeasurementSpec
-    from shared.networks import WeightsError, load_network
-
-    spec = MeasurementSpec.of(scenario)
-    expected = {"kind": "sinr_map", "input_size": spec.feature_size, "levels": spec.level_count}
-    try:
-        return load_network(Path(path), expected)
-    except WeightsError as exc:
-        raise UsageError(f"--model: {exc}") from None
-
-
 def cmd_sinr(args: argparse.Namespace) -> int:
     if args.model:
         return _sinr_from_model(args)
@@ -208,7 +203,7 @@ def _sinr_from_model(args: argparse.Namespace) -> int:
         raise UsageError("--model: the network is the map of the jammer it was trained for; "
                          "--jammer/--no-jammer do not apply")
     scenario = _load_scenario(args)
-    network, _ = _load_sinr_map(args.model, scenario)
+    network, _ = sinr_map_argument("--model", args.model, scenario)
     points = _read_points(args)
     levels = predict_levels(network, scenario_features(scenario, points))
     rows = [
@@ -248,6 +243,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     scenario = scenario_with_jammer(args)
     jammer = RadioModel.jammer_of(scenario)
     setting = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
+    if args.sinr_map and args.method == "proposed":
+        survey_map_argument("--sinr-map", args.sinr_map, scenario)
     torch.set_num_threads(1)
     bar = ProgressBar(f"eval {args.method}", args.episodes)
     finished = 0
@@ -514,7 +511,7 @@ def cmd_online_map(args: argparse.Namespace) -> int:
     check_range("--uavs", uavs, 1, 10_000)
     check_range("--period", args.period, 0, above=True)
     check_range("--seed", args.seed, 0, SEED_MAX)
-    network, card = _load_sinr_map(args.model, scenario)
+    network, card = sinr_map_argument("--model", args.model, scenario)
     if not isinstance(card.get("accuracy"), int | float):
         raise UsageError(f"--model {args.model}: its card states no accuracy")
     schedule = Schedule.table_i(first_change=args.period / 2, period=args.period)

@@ -19,7 +19,13 @@ import threading
 import time
 from pathlib import Path
 
-from jamnav.arguments import SEED_MAX, UsageError, check_range, output_path
+from jamnav.arguments import (
+    SEED_MAX,
+    UsageError,
+    check_range,
+    output_path,
+    survey_map_argument,
+)
 from shared.messages import JammerCommand, mapper_summary
 from shared.scenario import MAX_UAVS, ScenarioError, load_scenario
 from shared.shipped import VALUE_NET_HELP, value_net_for, value_net_path
@@ -73,26 +79,18 @@ def _check_value_network(path: str, scenario) -> None:
 def _survey_map(args: argparse.Namespace, scenario) -> Path | None:
     """The survey map the cloud starts the online map from: ``--sinr-map``, checked now, or
     the shipped one of the scenario's radio world; None for the other maps."""
-    from shared.measurements import MeasurementSpec
-    from shared.networks import WeightsError, load_network
     from shared.shipped import NoSurveyMapError, sinr_map_for
 
     if args.map != "online":
         if args.sinr_map is not None:
             raise UsageError("--sinr-map is where the online map starts: it needs --map online")
         return None
-    if args.sinr_map is None:
-        try:
-            return sinr_map_for(scenario)
-        except NoSurveyMapError as exc:
-            raise UsageError(str(exc)) from None
-    spec = MeasurementSpec.of(scenario)
+    if args.sinr_map is not None:
+        return survey_map_argument("--sinr-map", args.sinr_map, scenario)
     try:
-        load_network(Path(args.sinr_map), {"kind": "sinr_map", "input_size": spec.feature_size,
-                                           "levels": spec.level_count})
-    except WeightsError as exc:
-        raise UsageError(f"--sinr-map: {exc}") from None
-    return Path(args.sinr_map)
+        return sinr_map_for(scenario)
+    except NoSurveyMapError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def _second_router(args: argparse.Namespace, endpoint: str) -> tuple[str | None, str | None]:

@@ -3,8 +3,10 @@ trained by the project's commands)."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from shared.scenario import Scenario
@@ -57,6 +59,23 @@ def sinr_map_for(scenario: Scenario) -> Path:
         f"(it differs from {closest}'s in {', '.join(differences[closest])}): fit one with "
         f"`jamnav fit-sinr --scenario FILE --no-jammer --out MAP.safetensors` and pass it "
         f"with --sinr-map MAP.safetensors")
+
+
+def survey_world_digest(scenario: Scenario) -> str:
+    """A fingerprint of ``Scenario.survey_world``: what a survey map's card records of the
+    radio world it was learned in (``jamnav fit-sinr`` writes it)."""
+    text = json.dumps(scenario.survey_world(), sort_keys=True)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
+
+
+def foreign_survey_map(card: dict[str, Any], scenario: Scenario) -> str | None:
+    """One line of warning when a survey map's ``card`` says it was learned in another radio
+    world than ``scenario``'s; None when it was learned there, or its card does not say."""
+    learned_in = card.get("survey_world")
+    if learned_in is None or learned_in == survey_world_digest(scenario):
+        return None
+    return (f"the survey map was learned in the radio world of {card.get('scenario')!r}, "
+            f"not in scenario {scenario.name!r}'s: it will be flown as if it were right there")
 
 
 EXTENDED_CROWD_VALUE_NET = MODELS_DIR / "value_net_extended_crowd.safetensors"

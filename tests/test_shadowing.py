@@ -16,7 +16,9 @@ from shared.shipped import (
     SINR_MAP_NO_JAMMER,
     SINR_MAP_NO_JAMMER_SHADOWED,
     NoSurveyMapError,
+    foreign_survey_map,
     sinr_map_for,
+    survey_world_digest,
 )
 from tests.conftest import variant
 
@@ -224,3 +226,30 @@ def test_survey_map_per_radio_world():
         message = str(refused.value)
         assert "\n" not in message and "jamnav fit-sinr" in message and "--sinr-map" in message
         assert f"differs from {named})" in message
+
+
+def test_a_survey_map_from_another_world_is_flown_with_a_warning(capsys, tmp_path):
+    """A survey map's card records the radio world it was learned in (fit-sinr writes it, the
+    shipped cards carry it); given explicitly for another world, it is flown, with one line
+    of warning, and its own world takes it without a word."""
+    from cloud_service.sinr_training import fit_sinr_map
+    from jamnav.cli import main
+    from shared.networks import load_network
+
+    shadowed, idealized = load_scenario("icc2021-shadowed"), load_scenario("icc2021")
+    _, card = fit_sinr_map(shadowed, None, 200, 2, 0)
+    assert card["survey_world"] == survey_world_digest(shadowed) != survey_world_digest(idealized)
+    _, shipped = load_network(SINR_MAP_NO_JAMMER)
+    assert foreign_survey_map(shipped, idealized) is None
+    assert foreign_survey_map({"scenario": "older"}, shadowed) is None  # a card that does not say
+    warning = foreign_survey_map(shipped, shadowed)
+    assert "'icc2021'" in warning and "'icc2021-shadowed'" in warning
+
+    argv = ["eval", "--method", "proposed", "--episodes", "1", "--json", "--sinr-map",
+            str(SINR_MAP_NO_JAMMER)]
+    assert main(argv + ["--scenario", "icc2021-shadowed"]) == 0
+    err = capsys.readouterr().err
+    assert [line for line in err.splitlines() if "warning" in line] == [
+        f"jamnav: warning: --sinr-map: {warning}"]
+    assert main(argv + ["--scenario", "icc2021"]) == 0
+    assert "warning" not in capsys.readouterr().err
