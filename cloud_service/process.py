@@ -386,7 +386,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.retrain_samples < 2:
                 raise ValueError("--retrain-samples must be at least 2")
             retrain = RetrainConfig(min_samples=args.retrain_samples)
-        sinr_net = None
+        sinr_net = None  # resolved here, so that a world without one is refused before connecting
         if args.map == "online":
             sinr_net = Path(args.sinr_net) if args.sinr_net else sinr_map_for(scenario)
         topics = Topics(args.prefix)

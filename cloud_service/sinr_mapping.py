@@ -474,16 +474,16 @@ class OnlineSinrMapper:
         config = self.retrain
         features, levels = data.features, data.levels
         prior_xy = self._prior_positions()
+        prior_features = scenario_features(self.scenario, prior_xy)
         sigma_db = 0.0
         if jammer is None:
-            prior_levels = self._base_levels(prior_xy)
+            prior_levels = predict_levels(self._base, prior_features)
         else:
             sigma_db = self._shadowing_sigma(prior_xy)
             prior_levels = corrected_levels(self.scenario, self._base_levels, jammer,
                                             prior_xy, shadowing_sigma_db=sigma_db)
-        features = np.concatenate([features, scenario_features(self.scenario, prior_xy)])
+        features = np.concatenate([features, prior_features])
         levels = np.concatenate([levels, prior_levels])
-        start_from = self._base
         # The estimate behind the map, when one converged; a provisional map has none.
         provisional = isinstance(jammer, JammerHypotheses)
         estimate = None if provisional else jammer
@@ -492,7 +492,7 @@ class OnlineSinrMapper:
         from cloud_service.sinr_training import train_sinr_map
 
         result = train_sinr_map(
-            features, levels, self.level_count, network=start_from,
+            features, levels, self.level_count, network=self._base,
             steps=config.provisional_steps if provisional else config.steps,
             max_seconds=config.max_seconds, target_accuracy=config.target_accuracy,
             holdout=config.holdout, seed=self._seed + self._version + 1)
