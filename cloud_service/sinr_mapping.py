@@ -407,7 +407,7 @@ class OnlineSinrMapper:
         if self.estimate is None or not self.estimate.present:
             return reported
         model = corrected_level_probabilities(
-            self.scenario, self._base_levels, self.estimate, xy,
+            self.scenario, self._base_probabilities, self.estimate, xy,
             shadowing_sigma_db=self._estimate_sigma_db, report_sigma_db=REPORT_SIGMA_DB)
         # fmax: a report whose position cannot be recovered has the map's probability only.
         return np.fmax(reported, np.take_along_axis(model, stored.levels[:, None], -1)[:, 0])
@@ -443,8 +443,8 @@ class OnlineSinrMapper:
         # without them a jammer cannot be told from a shadow (see jammer_estimation).
         located = locate_jammer(self.scenario,
                                 positions_from_features(self.scenario, data.features),
-                                data.levels, no_jammer_levels=predict_levels(self._base,
-                                                                             data.features))
+                                data.levels,
+                                no_jammer_levels=predict_probabilities(self._base, data.features))
         estimate = located.estimate
         change.tried_at = len(data)
         change.tries += 1
@@ -480,7 +480,7 @@ class OnlineSinrMapper:
             prior_levels = predict_levels(self._base, prior_features)
         else:
             sigma_db = self._shadowing_sigma(prior_xy)
-            prior_levels = corrected_levels(self.scenario, self._base_levels, jammer,
+            prior_levels = corrected_levels(self.scenario, self._base_probabilities, jammer,
                                             prior_xy, shadowing_sigma_db=sigma_db)
         features = np.concatenate([features, prior_features])
         levels = np.concatenate([levels, prior_levels])
@@ -538,10 +538,10 @@ class OnlineSinrMapper:
     def _shadowing_sigma(self, xy: np.ndarray) -> float:
         """How far the survey map says the world departs from the ideal model, at ``xy``."""
         return fit_shadowing_sigma(RadioModel(self.scenario, shadowed=False), xy,
-                                   self._base_levels(xy))
+                                   self._base_probabilities(xy).argmax(axis=-1))
 
-    def _base_levels(self, xy: np.ndarray) -> np.ndarray:
-        return predict_levels(self._base, scenario_features(self.scenario, xy))
+    def _base_probabilities(self, xy: np.ndarray) -> np.ndarray:
+        return predict_probabilities(self._base, scenario_features(self.scenario, xy))
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait for running work; True when none is running any more."""

@@ -7,12 +7,12 @@ from measured spreads (see each test) with a margin, and fail on a real regressi
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
+from scipy.special import ndtr as norm_cdf
 
 from cloud_service.jammer_estimation import (
+    REPORT_SIGMA_DB,
     JammerEstimate,
     corrected_levels,
     estimate_jammer,
@@ -238,20 +238,6 @@ def test_rows_without_a_position_are_ignored(shadowed):
     assert with_gaps == estimate_jammer(shadowed, xy, levels, no_jammer_levels=no_jammer)
 
 
-def test_two_thousand_measurements_take_well_under_a_second(shadowed):
-    """Measured on one core: ~0.25-0.3 s (coarse search ~0.15 s, tables ~0.04 s)."""
-    rng = np.random.default_rng(10)
-    jammer = JammerParams(10.0, -20.0, 1.0, shadowed.jammer.height_m)
-    xy = uniform_points(shadowed, rng, 2000)
-    levels, no_jammer = reports(shadowed, jammer, xy, rng)
-    seconds = []
-    for _ in range(3):
-        start = time.perf_counter()
-        estimate_jammer(shadowed, xy, levels, no_jammer_levels=no_jammer)
-        seconds.append(time.perf_counter() - start)
-    assert min(seconds) < 1.0
-
-
 # -- the shadowing's spread and the corrected map -----------------------------------------------
 def test_the_spread_is_learned_from_the_no_jammer_map(scenario, shadowed):
     xy = uniform_points(scenario, np.random.default_rng(11), 4000)
@@ -292,6 +278,42 @@ def test_corrected_map_beats_the_outdated_one_in_the_shadowed_world(shadowed):
                                          estimate, points)
             assert corrected.shape == jammed.shape
             assert np.mean(corrected == jammed) >= max(outdated + 0.003, 0.87), setting
+
+
+def reported_probabilities(radio: RadioModel, sinr_db: np.ndarray, sd_db: float) -> np.ndarray:
+    """The share of reports at each level where the SINR is ``sinr_db`` and a report errs by
+    N(0, sd_db^2): what a map learned from many reports there gives (..., levels)."""
+    bounds = np.concatenate([[-np.inf], radio.level_edges_db, [np.inf]])
+    below = norm_cdf((bounds[:, None] - sinr_db.reshape(-1)) / sd_db)
+    return np.diff(below, axis=0).T.reshape(*sinr_db.shape, len(bounds) - 1)
+
+
+def test_a_map_of_report_shares_corrects_the_levels_a_jammer_moves(shadowed):
+    """Given only the world's no-jammer level, the correction can hardly tell which points
+    lie within the jammer's loss (2.3 dB at most) of a level's edge: the world's spread
+    about the ideal model is wider. A map learned from noisy reports says more there, as
+    its probabilities are the shares of reports on either side of the edge. Given the
+    world's own shares (reports at REPORT_SIGMA_DB), the correction with the true jammer
+    rights about twice as many of the points the jammer moves. Measured (1 m grid, Table
+    I's 1 W settings), right of the points moved: 23 / 28 / 25 % from the levels, 50 / 48 /
+    60 % from the shares; of the rest 99.0 / 99.2 / 99.3 % and 94.1 / 92.9 / 92.8 %: the
+    shares err on the dark side near the jammer, which costs a detour, not a link."""
+    truth = RadioModel(shadowed)
+    points = grid_points(shadowed).reshape(-1, 2)
+    quiet = truth.evaluate(points).level
+
+    def shares(xy):
+        return reported_probabilities(truth, truth.evaluate(xy).sinr_db, REPORT_SIGMA_DB)
+
+    for setting in TABLE_I_JAMMERS[:3]:
+        jammed = truth.evaluate(points, JammerParams(*setting, shadowed.jammer.height_m)).level
+        moved = jammed != quiet
+        from_levels = corrected_levels(shadowed, lambda xy: truth.evaluate(xy).level,
+                                       known(setting, shadowed), points)
+        from_shares = corrected_levels(shadowed, shares, known(setting, shadowed), points)
+        righted = np.mean(from_shares[moved] == jammed[moved])
+        assert righted >= np.mean(from_levels[moved] == jammed[moved]) + 0.15, setting
+        assert np.mean(from_shares[~moved] == jammed[~moved]) >= 0.9, setting
 
 
 def test_corrected_map_is_exact_in_the_ideal_world(scenario):
