@@ -12,8 +12,10 @@ import pytest
 from scipy.special import ndtr as norm_cdf
 
 from cloud_service.jammer_estimation import (
+    MAP_READING_SD_DB,
     REPORT_SIGMA_DB,
     JammerEstimate,
+    _prior_of_map,
     corrected_levels,
     estimate_jammer,
     fit_shadowing_sigma,
@@ -278,6 +280,24 @@ def test_corrected_map_beats_the_outdated_one_in_the_shadowed_world(shadowed):
                                          estimate, points)
             assert corrected.shape == jammed.shape
             assert np.mean(corrected == jammed) >= max(outdated + 0.003, 0.87), setting
+
+
+def test_a_map_is_read_near_a_level_edge_and_weighed_against_the_ideal_model(shadowed):
+    """Hand-computed: a map that puts a share Phi(-1) of its reports below -3 dB reads the
+    SINR at -3 + REPORT_SIGMA_DB dB, give or take MAP_READING_SD_DB; against the ideal
+    model's prior the two are averaged by precision; a certain map reads nothing."""
+    radio = RadioModel(shadowed, shadowed=False)
+    edge = radio.level_edges_db[0]
+    share = float(norm_cdf(-1.0))
+    unsure = np.array([[share, 0.0, 1.0 - share]])
+    mean, sd = _prior_of_map(radio, np.array([edge]), 1e6, unsure)
+    np.testing.assert_allclose(mean, edge + REPORT_SIGMA_DB, atol=1e-6)
+    np.testing.assert_allclose(sd, MAP_READING_SD_DB, rtol=1e-6)
+    mean, sd = _prior_of_map(radio, np.array([edge]), MAP_READING_SD_DB, unsure)
+    np.testing.assert_allclose(mean, edge + REPORT_SIGMA_DB / 2, atol=1e-9)
+    np.testing.assert_allclose(sd, MAP_READING_SD_DB / np.sqrt(2.0), rtol=1e-9)
+    mean, sd = _prior_of_map(radio, np.array([4.0]), 2.5, np.array([[0.0, 0.0, 1.0]]))
+    np.testing.assert_allclose([mean[0], sd[0]], [4.0, 2.5])
 
 
 def reported_probabilities(radio: RadioModel, sinr_db: np.ndarray, sd_db: float) -> np.ndarray:
