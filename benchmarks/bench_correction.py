@@ -1,0 +1,90 @@
+"""What correcting the survey map with a jammer estimate is worth, the estimate taken as the
+true jammer: the shipped planner flies icc2021-shadowed's survey map uncorrected, corrected by
+the map's levels alone, corrected by what its probabilities read near a level's edge (the
+cloud's way), the same with a perfectly learned survey (the world's own shares of reports at
+each level), and the true map. The gap between the last two is what no estimate can close
+(the jammer link's own shadowing); between the cloud's way and the perfect survey, what the
+survey map's errors cost. One CPU thread; outcomes, not speed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from scipy.special import ndtr
+
+from benchmarks.common import Figure
+from cloud_service.evaluation import load_policy
+from cloud_service.jammer_estimation import REPORT_SIGMA_DB, JammerEstimate, corrected_levels
+from cloud_service.rollout import (
+    LookaheadController,
+    outcome_rates,
+    perfect_maps,
+    run_episodes,
+)
+from shared.measurements import predict_probabilities, scenario_features
+from shared.networks import load_network
+from shared.paper import JammerSetting
+from shared.policy import MAP_SPACING_M, LevelRaster, RasterMap
+from shared.radio import RadioModel
+from shared.scenario import Scenario, load_scenario
+from shared.shipped import sinr_map_for, value_net_for
+
+SETTINGS = (JammerSetting(0.0, 0.0, 1.0), JammerSetting(-30.0, 10.0, 1.0))
+EPISODES = 200
+SEED = 0
+
+
+def run() -> list[Figure]:
+    scenario = load_scenario("icc2021-shadowed")
+    survey, _ = load_network(sinr_map_for(scenario), {"kind": "sinr_map"})
+    truth = RadioModel(scenario)
+
+    def survey_probabilities(xy: np.ndarray) -> np.ndarray:
+        return predict_probabilities(survey, scenario_features(scenario, xy))
+
+    def world_shares(xy: np.ndarray) -> np.ndarray:
+        """The share of reports at each level where a report errs by REPORT_SIGMA_DB."""
+        bounds = np.concatenate([[-np.inf], truth.level_edges_db, [np.inf]])
+        below = ndtr((bounds[:, None] - truth.evaluate(xy).sinr_db.reshape(-1))
+                     / REPORT_SIGMA_DB)
+        return np.diff(below, axis=0).T
+
+    figures = []
+    for setting in SETTINGS:
+        estimate = JammerEstimate(True, setting.x, setting.y, setting.power_w, None,
+                                  0.0, 0.0, 0.0, 0, 0.0)
+        maps: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+            "survey map, uncorrected": lambda xy: survey_probabilities(xy).argmax(-1),
+            "corrected by the survey map's levels": lambda xy, e=estimate: corrected_levels(
+                scenario, lambda p: survey_probabilities(p).argmax(-1), e, xy),
+            "corrected by the survey map's probabilities (shipped)":
+                lambda xy, e=estimate: corrected_levels(scenario, survey_probabilities, e, xy),
+            "corrected by a perfect survey's report shares":
+                lambda xy, e=estimate: corrected_levels(scenario, world_shares, e, xy),
+        }
+        name = f"icc2021-shadowed, {setting.x:g},{setting.y:g} {setting.power_w:g} W, true jammer"
+        for label, levels_at in maps.items():
+            figures.append(Figure(f"{name}: {label}, success",
+                                  _success(scenario, setting, levels_at), "%"))
+        figures.append(Figure(f"{name}: the true map, success",
+                              _success(scenario, setting, None), "%"))
+    return figures
+
+
+def _success(scenario: Scenario, setting: JammerSetting,
+             levels_at: Callable[[np.ndarray], np.ndarray] | None) -> float:
+    """Success (%) of the shipped planner flying the map ``levels_at`` (None: the true map)."""
+    policy = load_policy(scenario, value_net_for(None, scenario.area.square_metres,
+                                                 scenario.missions.uav_count))
+    if levels_at is None:
+        maps = perfect_maps(scenario)
+    else:
+        raster = LevelRaster.sample(scenario, levels_at, MAP_SPACING_M)
+
+        def maps(world, rows):
+            return RasterMap(scenario, [raster], np.zeros(rows.size, np.int64))
+
+    results = run_episodes(scenario, LookaheadController(policy, maps), EPISODES, SEED, setting)
+    return 100.0 * outcome_rates(results.outcomes)["success_rate"]
