@@ -4,7 +4,9 @@ the map's levels alone, corrected by what its probabilities read near a level's 
 cloud's way), the same with a perfectly learned survey (the world's own shares of reports at
 each level), and the true map. The gap between the last two is what no estimate can close
 (the jammer link's own shadowing); between the cloud's way and the perfect survey, what the
-survey map's errors cost. One CPU thread; outcomes, not speed.
+survey map's errors cost. And how far the idealized world's survey map says the world departs
+from the ideal model where UAVs report, which is why the reading changes nothing there. One
+CPU thread; outcomes, not speed.
 """
 
 from __future__ import annotations
@@ -15,17 +17,29 @@ import numpy as np
 from scipy.special import ndtr
 
 from benchmarks.common import Figure
-from cloud_service.evaluation import load_policy
-from cloud_service.jammer_estimation import REPORT_SIGMA_DB, JammerEstimate, corrected_levels
+from cloud_service.evaluation import load_policy, random_jammer
+from cloud_service.jammer_estimation import (
+    REPORT_SIGMA_DB,
+    JammerEstimate,
+    corrected_levels,
+    fit_shadowing_sigma,
+    positions_from_features,
+)
+from cloud_service.online_map_sim import Fleet
 from cloud_service.rollout import (
     LookaheadController,
     outcome_rates,
     perfect_maps,
     run_episodes,
 )
-from shared.measurements import predict_probabilities, scenario_features
+from shared.measurements import (
+    MeasurementBatch,
+    predict_levels,
+    predict_probabilities,
+    scenario_features,
+)
 from shared.networks import load_network
-from shared.paper import JammerSetting
+from shared.paper import JammerSetting, jammer_params
 from shared.policy import MAP_SPACING_M, LevelRaster, RasterMap
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
@@ -70,7 +84,36 @@ def run() -> list[Figure]:
                                   _success(scenario, setting, levels_at), "%"))
         figures.append(Figure(f"{name}: the true map, success",
                               _success(scenario, setting, None), "%"))
+    spreads = _idealized_spreads(load_scenario("icc2021"))
+    figures.append(Figure(f"icc2021: the world's fitted spread about the ideal model where "
+                          f"{SPREAD_UAVS} UAVs reported for {SPREAD_FLIGHT_S:.0f} s, most of "
+                          f"{len(spreads)} settings", 100.0 * max(spreads), "0.01 dB"))
     return figures
+
+
+SPREAD_SETTINGS = 6
+SPREAD_UAVS = 4
+SPREAD_FLIGHT_S = 30.0
+
+
+def _idealized_spreads(scenario: Scenario) -> list[float]:
+    """``fit_shadowing_sigma`` of the survey map's levels at the reports of four UAVs after a
+    random jammer appeared, as the estimator fits it (dB), per setting."""
+    survey, _ = load_network(sinr_map_for(scenario), {"kind": "sinr_map"})
+    radio = RadioModel(scenario, shadowed=False)
+    spreads = []
+    for k in range(SPREAD_SETTINGS):
+        rng = np.random.default_rng(1000 + k)
+        jammer = jammer_params(scenario, random_jammer(scenario, rng))
+        fleet = Fleet(scenario, SPREAD_UAVS, rng)
+        batches = []
+        for step in range(int(SPREAD_FLIGHT_S / scenario.timing.step_s)):
+            fleet.fly()
+            batches.append(fleet.uploads(jammer, float(step), step))
+        data = MeasurementBatch.concatenate(batches)
+        spreads.append(fit_shadowing_sigma(radio, positions_from_features(scenario, data.features),
+                                           predict_levels(survey, data.features)))
+    return spreads
 
 
 def _success(scenario: Scenario, setting: JammerSetting,
