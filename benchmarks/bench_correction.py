@@ -79,6 +79,16 @@ def run() -> list[Figure]:
                 lambda xy, e=estimate: corrected_levels(scenario, world_shares, e, xy),
         }
         name = f"icc2021-shadowed, {setting.x:g},{setting.y:g} {setting.power_w:g} W, true jammer"
+        grid = _grid(scenario)
+        jammed = truth.evaluate(grid, jammer_params(scenario, setting)).level
+        figures.append(Figure(f"{name}: levels the jammer moves, of the area",
+                              100.0 * np.mean(jammed != truth.evaluate(grid).level), "%"))
+        uncorrected = maps["survey map, uncorrected"](grid)
+        for label in ("corrected by the survey map's levels",
+                      "corrected by the survey map's probabilities (shipped)"):
+            correction = label.removeprefix("corrected ")
+            figures.append(Figure(f"{name}: levels the correction {correction} moves",
+                                  100.0 * np.mean(maps[label](grid) != uncorrected), "%"))
         for label, levels_at in maps.items():
             figures.append(Figure(f"{name}: {label}, success",
                                   _success(scenario, setting, levels_at), "%"))
@@ -89,6 +99,13 @@ def run() -> list[Figure]:
                           f"{SPREAD_UAVS} UAVs reported for {SPREAD_FLIGHT_S:.0f} s, most of "
                           f"{len(spreads)} settings", 100.0 * max(spreads), "0.01 dB"))
     return figures
+
+
+def _grid(scenario: Scenario, spacing_m: float = 1.0) -> np.ndarray:
+    area = scenario.area
+    xs = np.arange(area.x_min, area.x_max + spacing_m / 2, spacing_m)
+    ys = np.arange(area.y_min, area.y_max + spacing_m / 2, spacing_m)
+    return np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
 
 
 SPREAD_SETTINGS = 6
