@@ -439,8 +439,9 @@ class OnlineSinrMapper:
                 self._busy = False
 
     def _try_estimate(self, change: _Change, data: MeasurementBatch) -> None:
-        # The survey map's levels carry the world's shadowing, which the ideal model lacks:
-        # without them a jammer cannot be told from a shadow (see jammer_estimation).
+        # The survey map carries the world's shadowing, which the ideal model lacks: without
+        # it a jammer cannot be told from a shadow; its probabilities, not only its levels,
+        # say how near a level's edge each report lies (see jammer_estimation).
         located = locate_jammer(self.scenario,
                                 positions_from_features(self.scenario, data.features),
                                 data.levels,
