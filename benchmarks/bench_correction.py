@@ -14,16 +14,16 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from scipy.special import ndtr
 
+from benchmarks.bench_adaptation import TruthGrid
 from benchmarks.common import Figure
 from cloud_service.evaluation import load_policy, random_jammer
 from cloud_service.jammer_estimation import (
-    REPORT_SIGMA_DB,
     JammerEstimate,
     corrected_levels,
     fit_shadowing_sigma,
     positions_from_features,
+    report_shares,
 )
 from cloud_service.online_map_sim import Fleet
 from cloud_service.rollout import (
@@ -54,16 +54,13 @@ def run() -> list[Figure]:
     scenario = load_scenario("icc2021-shadowed")
     survey, _ = load_network(sinr_map_for(scenario), {"kind": "sinr_map"})
     truth = RadioModel(scenario)
+    grid = TruthGrid(scenario)
 
     def survey_probabilities(xy: np.ndarray) -> np.ndarray:
         return predict_probabilities(survey, scenario_features(scenario, xy))
 
     def world_shares(xy: np.ndarray) -> np.ndarray:
-        """The share of reports at each level where a report errs by REPORT_SIGMA_DB."""
-        bounds = np.concatenate([[-np.inf], truth.level_edges_db, [np.inf]])
-        below = ndtr((bounds[:, None] - truth.evaluate(xy).sinr_db.reshape(-1))
-                     / REPORT_SIGMA_DB)
-        return np.diff(below, axis=0).T
+        return report_shares(truth, truth.evaluate(xy).sinr_db)
 
     figures = []
     for setting in SETTINGS:
@@ -79,16 +76,14 @@ def run() -> list[Figure]:
                 lambda xy, e=estimate: corrected_levels(scenario, world_shares, e, xy),
         }
         name = f"icc2021-shadowed, {setting.x:g},{setting.y:g} {setting.power_w:g} W, true jammer"
-        grid = _grid(scenario)
-        jammed = truth.evaluate(grid, jammer_params(scenario, setting)).level
         figures.append(Figure(f"{name}: levels the jammer moves, of the area",
-                              100.0 * np.mean(jammed != truth.evaluate(grid).level), "%"))
-        uncorrected = maps["survey map, uncorrected"](grid)
+                              100.0 * grid.moved(setting), "%"))
+        uncorrected = maps["survey map, uncorrected"](grid.xy)
         for label in ("corrected by the survey map's levels",
                       "corrected by the survey map's probabilities (shipped)"):
             correction = label.removeprefix("corrected ")
             figures.append(Figure(f"{name}: levels the correction {correction} moves",
-                                  100.0 * np.mean(maps[label](grid) != uncorrected), "%"))
+                                  100.0 * np.mean(maps[label](grid.xy) != uncorrected), "%"))
         for label, levels_at in maps.items():
             figures.append(Figure(f"{name}: {label}, success",
                                   _success(scenario, setting, levels_at), "%"))
@@ -99,13 +94,6 @@ def run() -> list[Figure]:
                           f"{SPREAD_UAVS} UAVs reported for {SPREAD_FLIGHT_S:.0f} s, most of "
                           f"{len(spreads)} settings", 100.0 * max(spreads), "0.01 dB"))
     return figures
-
-
-def _grid(scenario: Scenario, spacing_m: float = 1.0) -> np.ndarray:
-    area = scenario.area
-    xs = np.arange(area.x_min, area.x_max + spacing_m / 2, spacing_m)
-    ys = np.arange(area.y_min, area.y_max + spacing_m / 2, spacing_m)
-    return np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
 
 
 SPREAD_SETTINGS = 6

@@ -48,7 +48,7 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
-from scipy.special import log_ndtr, ndtri
+from scipy.special import log_ndtr, ndtr, ndtri
 
 from shared.measurements import feature_size, features_per_gbs, scenario_features
 from shared.radio import JammerParams, RadioModel
@@ -73,9 +73,9 @@ OUTLIER_SHARE = 0.01  # reports that may contradict the model (a deep shadow, a 
 # MAP_READING_SD_DB (the network's smoothing and calibration); a share beyond MAP_SHARE_READ
 # of 0 or 1 says only which side of the edge. bench_correction (icc2021-shadowed's survey map
 # corrected with the true jammer, flown), success at (0,0) 1 W / (-30,10) 1 W: by the map's
-# level alone 94.9 / 81.9 %, as uncorrected (it moved no level, where the jammer moves 12-14 %
-# of them); read at (0.02, 1 dB) 94.6 / 91.0 %, (0.005, 1 dB) 94.6 / 91.1 %, (0.001, 0.5 dB)
-# 94.8 / 94.0 %, no better at 0.3 dB or 0.0001; the true map 98.6 / 97.1 %.
+# level alone 94.9 / 81.9 %, as uncorrected (it moved no level, where the jammer moves
+# 11.6-13.6 % of them); read at (0.02, 1 dB) 94.6 / 91.0 %, (0.005, 1 dB) 94.6 / 91.1 %,
+# (0.001, 0.5 dB) 94.8 / 94.0 %, no better at 0.3 dB or 0.0001; the true map 98.6 / 97.1 %.
 MAP_READING_SD_DB = 0.5
 MAP_SHARE_READ = 0.001
 INDEPENDENT_SPACING_M = 3.0
@@ -213,6 +213,16 @@ def _level_probabilities(levels_or_probabilities: np.ndarray, level_count: int) 
     if given.ndim == 2:
         return given.astype(np.float64)
     return np.eye(level_count)[given.astype(np.int64).reshape(-1)]
+
+
+def report_shares(radio: RadioModel, sinr_db: np.ndarray,
+                  report_sigma_db: float = REPORT_SIGMA_DB) -> np.ndarray:
+    """The share of reports at each level (..., levels) where the SINR is ``sinr_db`` and a
+    report errs by N(0, report_sigma_db^2): what a map learned from many reports there gives
+    at best, and what ``_prior_of_map`` reads back."""
+    bounds = np.concatenate([[-np.inf], radio.level_edges_db, [np.inf]])
+    below = ndtr((bounds - np.asarray(sinr_db)[..., None]) / report_sigma_db)
+    return np.diff(below, axis=-1)
 
 
 def _prior_of_map(radio: RadioModel, ideal_db: np.ndarray, shadowing_sigma_db: float,
@@ -584,8 +594,7 @@ def _coarse_search(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
     located = np.isfinite(xy).all(axis=1)
     xy, levels = xy[located], levels[located]
     if no_jammer_levels is not None:
-        no_jammer_levels = _level_probabilities(no_jammer_levels,
-                                                scenario.channel.level_count)[located]
+        no_jammer_levels = np.asarray(no_jammer_levels)[located]  # levels or probabilities
     if len(xy) < min_measurements:
         return None
     radio = RadioModel(scenario, shadowed=False)

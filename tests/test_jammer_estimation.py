@@ -22,6 +22,7 @@ from cloud_service.jammer_estimation import (
     jammer_hypotheses,
     locate_jammer,
     positions_from_features,
+    report_shares,
 )
 from shared.measurements import SpotFilter, scenario_features
 from shared.paper import TABLE_I_JAMMERS
@@ -300,14 +301,6 @@ def test_a_map_is_read_near_a_level_edge_and_weighed_against_the_ideal_model(sha
     np.testing.assert_allclose([mean[0], sd[0]], [4.0, 2.5])
 
 
-def reported_probabilities(radio: RadioModel, sinr_db: np.ndarray, sd_db: float) -> np.ndarray:
-    """The share of reports at each level where the SINR is ``sinr_db`` and a report errs by
-    N(0, sd_db^2): what a map learned from many reports there gives (..., levels)."""
-    bounds = np.concatenate([[-np.inf], radio.level_edges_db, [np.inf]])
-    below = norm_cdf((bounds[:, None] - sinr_db.reshape(-1)) / sd_db)
-    return np.diff(below, axis=0).T.reshape(*sinr_db.shape, len(bounds) - 1)
-
-
 def test_a_map_of_report_shares_corrects_the_levels_a_jammer_moves(shadowed):
     """Given only the world's no-jammer level, the correction can hardly tell which points
     lie within the jammer's loss (2.3 dB at most) of a level's edge: the world's spread
@@ -323,7 +316,7 @@ def test_a_map_of_report_shares_corrects_the_levels_a_jammer_moves(shadowed):
     quiet = truth.evaluate(points).level
 
     def shares(xy):
-        return reported_probabilities(truth, truth.evaluate(xy).sinr_db, REPORT_SIGMA_DB)
+        return report_shares(truth, truth.evaluate(xy).sinr_db)
 
     for setting in TABLE_I_JAMMERS[:3]:
         jammed = truth.evaluate(points, JammerParams(*setting, shadowed.jammer.height_m)).level
