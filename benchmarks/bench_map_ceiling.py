@@ -1,0 +1,104 @@
+"""How right can any map of a radio world be? Level accuracy is scored point by point against
+the true levels (bench_adaptation's 2 m truth grid, no jammer), so it depends on how close
+the world's SINR lies to a level's edge, and in a shadowed world it lies close everywhere
+the field wanders across an edge within a metre or two. Two ceilings, for both radio worlds:
+
+- a map that knows every point's SINR to within a given error (Gaussian, sd in dB) is right
+  with the probability that the error keeps the SINR in its band, averaged over the area;
+- a map that knows nothing of the radio model but the reports themselves: around each point,
+  the share of uniform reports (with the world's receiver noise) at each level in a square
+  (the best side of ``LOCAL_SQUARES_M``), read as the level most reported and, where the
+  receiver is noisy, through the probit of its noise as the level its SINR reads in. Ten
+  and a hundred reports per square metre: 3 and 30 times the survey map's 30,000.
+
+What the survey network and the online maps reach (bench_adaptation, the survey map's card)
+is to be read against these. One CPU thread; a few seconds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import uniform_filter
+from scipy.special import ndtr, ndtri
+
+from benchmarks.bench_adaptation import TruthGrid
+from benchmarks.common import Figure
+from shared.radio import RadioModel
+from shared.scenario import load_scenario
+
+SINR_ERRORS_DB = (0.1, 0.25, 0.5, 1.0)
+REPORTS_PER_SQUARE_METRE = (10, 100)
+LOCAL_SQUARES_M = (0.5, 1.0, 1.5, 2.5)
+_CELL_M = 0.5  # reports are counted per cell of this side, then summed over a square of cells
+_SHARE_CLIP = 1e-3
+SEED = 0
+
+
+def run() -> list[Figure]:
+    figures = []
+    for name in ("icc2021", "icc2021-shadowed"):
+        scenario = load_scenario(name)
+        grid = TruthGrid(scenario)
+        radio = grid.radio
+        sinr_db = radio.evaluate(grid.xy).sinr_db
+        for error_db in SINR_ERRORS_DB:
+            figures.append(Figure(
+                f"{name}: a map knowing the SINR to {error_db:g} dB, right on",
+                100.0 * _expected_accuracy(radio, sinr_db, error_db), "%"))
+        truth = grid.levels(None)
+        for density in REPORTS_PER_SQUARE_METRE:
+            best: dict[str, tuple[float, float]] = {}
+            for square_m in LOCAL_SQUARES_M:
+                readings = _local_report_map(scenario, radio, grid.xy, density, square_m)
+                for how, levels in readings.items():
+                    right = 100.0 * float(np.mean(levels == truth))
+                    best[how] = max(best.get(how, (right, square_m)), (right, square_m))
+            for how, (right, square_m) in best.items():
+                figures.append(Figure(f"{name}: {density} reports per m2, {how} "
+                                      f"in {square_m:g} m squares, right on", right, "%"))
+    return figures
+
+
+def _expected_accuracy(radio: RadioModel, sinr_db: np.ndarray, error_db: float) -> float:
+    """The area's mean probability that N(sinr_db, error_db^2) falls in sinr_db's own band."""
+    bounds = np.concatenate([[-np.inf], radio.level_edges_db, [np.inf]])
+    level = np.searchsorted(radio.level_edges_db, sinr_db)
+    inside = ndtr((bounds[level + 1] - sinr_db) / error_db) - ndtr(
+        (bounds[level] - sinr_db) / error_db)
+    return float(inside.mean())
+
+
+def _local_report_map(scenario, radio: RadioModel, xy: np.ndarray, density: int,
+                      square_m: float) -> dict[str, np.ndarray]:
+    """Levels at ``xy`` from the reports in a square around each point: the most reported
+    one, and with a noisy receiver the band of the SINR that the share reported below the
+    edge nearest a half-split puts it at."""
+    area = scenario.area
+    rng = np.random.default_rng(SEED)
+    count = int(density * (area.x_max - area.x_min) * (area.y_max - area.y_min))
+    reported_xy = rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max), (count, 2))
+    reported = radio.measured_levels(radio.evaluate(reported_xy).sinr_db, rng)
+    origin = np.array([area.x_min, area.y_min])
+    shape = (int(np.ceil((area.y_max - area.y_min) / _CELL_M)),
+             int(np.ceil((area.x_max - area.x_min) / _CELL_M)))
+
+    def cells(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        index = ((points - origin) / _CELL_M).astype(np.int64)
+        return (np.clip(index[:, 1], 0, shape[0] - 1), np.clip(index[:, 0], 0, shape[1] - 1))
+
+    levels = len(radio.level_edges_db) + 1
+    counts = np.zeros((levels, *shape))
+    np.add.at(counts, (reported, *cells(reported_xy)), 1.0)
+    square = int(round(square_m / _CELL_M))
+    local = np.stack([uniform_filter(counts[level], square, mode="nearest")
+                      for level in range(levels)], axis=-1)[cells(xy)]
+    shares = local / np.maximum(local.sum(axis=-1, keepdims=True), 1e-12)
+    readings = {"the level most reported": shares.argmax(axis=-1)}
+    if radio.measurement_noise_db > 0:
+        below = np.cumsum(shares, axis=-1)[:, :-1]
+        edge = np.abs(below - 0.5).argmin(axis=-1)
+        share = np.clip(below[np.arange(len(below)), edge], _SHARE_CLIP, 1.0 - _SHARE_CLIP)
+        read_db = radio.level_edges_db[edge] - radio.measurement_noise_db * ndtri(share)
+        readings["the level read through the noise"] = np.searchsorted(radio.level_edges_db,
+                                                                        read_db)
+    return readings
