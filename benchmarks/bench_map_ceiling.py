@@ -21,7 +21,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter
 from scipy.special import ndtr, ndtri
 
-from benchmarks.bench_adaptation import TruthGrid
+from benchmarks.bench_adaptation import TRUTH_SPACING_M, TruthGrid
 from benchmarks.common import Figure
 from shared.radio import RadioModel
 from shared.scenario import load_scenario
@@ -41,6 +41,8 @@ def run() -> list[Figure]:
         grid = TruthGrid(scenario)
         radio = grid.radio
         sinr_db = radio.evaluate(grid.xy).sinr_db
+        figures.append(Figure(f"{name}: median change of SINR between truth points "
+                              f"{TRUTH_SPACING_M:g} m apart", _median_step_db(grid, sinr_db), "dB"))
         for error_db in SINR_ERRORS_DB:
             figures.append(Figure(
                 f"{name}: a map knowing the SINR to {error_db:g} dB, right on",
@@ -57,6 +59,12 @@ def run() -> list[Figure]:
                 figures.append(Figure(f"{name}: {density} reports per m2, {how} "
                                       f"in {square_m:g} m squares, right on", right, "%"))
     return figures
+
+
+def _median_step_db(grid: TruthGrid, sinr_db: np.ndarray) -> float:
+    """How fast the field wanders: the median |difference| of neighbours along a grid row."""
+    rows = sinr_db.reshape(-1, len(np.unique(grid.xy[:, 0])))
+    return float(np.median(np.abs(np.diff(rows, axis=1))))
 
 
 def _expected_accuracy(radio: RadioModel, sinr_db: np.ndarray, error_db: float) -> float:
