@@ -1,12 +1,14 @@
 """What correcting the survey map with a jammer estimate is worth, the estimate taken as the
 true jammer: the shipped planner flies icc2021-shadowed's survey map uncorrected, corrected by
 the map's levels alone, corrected by what its probabilities read near a level's edge (the
-cloud's way), the same with a perfectly learned survey (the world's own shares of reports at
-each level), and the true map. The gap between the last two is what no estimate can close
-(the jammer link's own shadowing); between the cloud's way and the perfect survey, what the
-survey map's errors cost. And how far the idealized world's survey map says the world departs
-from the ideal model where UAVs report, which is why the reading changes nothing there. One
-CPU thread; outcomes, not speed.
+cloud's way), the same with denser surveys learned without a model (bench_map_ceiling's
+local shares of 10 and 100 reports per square metre, against the survey map's 3), with a
+perfectly learned survey (the world's own shares of reports at each level), and the true
+map. The gap between the last two is what no estimate can close (the jammer link's own
+shadowing); between the cloud's way and the perfect survey, what the survey map's errors
+cost. And how far the idealized world's survey map says the world departs from the ideal
+model where UAVs report, which is why the reading changes nothing there. One CPU thread;
+outcomes, not speed.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from collections.abc import Callable
 import numpy as np
 
 from benchmarks.bench_adaptation import TruthGrid
+from benchmarks.bench_map_ceiling import LocalReportMap
 from benchmarks.common import Figure
 from cloud_service.evaluation import load_policy, random_jammer
 from cloud_service.jammer_estimation import (
@@ -48,6 +51,8 @@ from shared.shipped import sinr_map_for, value_net_for
 SETTINGS = (JammerSetting(0.0, 0.0, 1.0), JammerSetting(-30.0, 10.0, 1.0))
 EPISODES = 200
 SEED = 0
+DENSE_SURVEYS = (10, 100)  # reports per square metre
+DENSE_SURVEY_SQUARE_M = 1.0  # the most accurate of bench_map_ceiling's squares at both
 
 
 def run() -> list[Figure]:
@@ -62,6 +67,8 @@ def run() -> list[Figure]:
     def world_shares(xy: np.ndarray) -> np.ndarray:
         return report_shares(truth, truth.evaluate(xy).sinr_db)
 
+    dense_surveys = {density: LocalReportMap(scenario, truth, density, DENSE_SURVEY_SQUARE_M)
+                     for density in DENSE_SURVEYS}
     figures = []
     for setting in SETTINGS:
         estimate = JammerEstimate(True, setting.x, setting.y, setting.power_w, None,
@@ -72,6 +79,9 @@ def run() -> list[Figure]:
                 scenario, lambda p: survey_probabilities(p).argmax(-1), e, xy),
             "corrected by the survey map's probabilities (shipped)":
                 lambda xy, e=estimate: corrected_levels(scenario, survey_probabilities, e, xy),
+            **{f"corrected from a survey of {density} reports per m2 without a model":
+               lambda xy, e=estimate, survey=dense: corrected_levels(scenario, survey.shares, e, xy)
+               for density, dense in dense_surveys.items()},
             "corrected by a perfect survey's report shares":
                 lambda xy, e=estimate: corrected_levels(scenario, world_shares, e, xy),
         }

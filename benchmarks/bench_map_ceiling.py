@@ -24,7 +24,7 @@ from scipy.special import ndtr, ndtri
 from benchmarks.bench_adaptation import TRUTH_SPACING_M, TruthGrid
 from benchmarks.common import Figure
 from shared.radio import RadioModel
-from shared.scenario import load_scenario
+from shared.scenario import Scenario, load_scenario
 
 SINR_ERRORS_DB = (0.1, 0.25, 0.5, 1.0)
 REPORTS_PER_SQUARE_METRE = (10, 100)
@@ -51,7 +51,8 @@ def run() -> list[Figure]:
         for density in REPORTS_PER_SQUARE_METRE:
             best: dict[str, tuple[float, float]] = {}
             for square_m in LOCAL_SQUARES_M:
-                readings = _local_report_map(scenario, radio, grid.xy, density, square_m)
+                local = LocalReportMap(scenario, radio, density, square_m)
+                readings = _readings(radio, local.shares(grid.xy))
                 for how, levels in readings.items():
                     right = 100.0 * float(np.mean(levels == truth))
                     best[how] = max(best.get(how, (right, square_m)), (right, square_m))
@@ -76,31 +77,43 @@ def _expected_accuracy(radio: RadioModel, sinr_db: np.ndarray, error_db: float) 
     return float(inside.mean())
 
 
-def _local_report_map(scenario, radio: RadioModel, xy: np.ndarray, density: int,
-                      square_m: float) -> dict[str, np.ndarray]:
-    """Levels at ``xy`` from the reports in a square around each point: the most reported
-    one, and with a noisy receiver the band of the SINR that the share reported below the
-    edge nearest a half-split puts it at."""
-    area = scenario.area
-    rng = np.random.default_rng(SEED)
-    count = int(density * (area.x_max - area.x_min) * (area.y_max - area.y_min))
-    reported_xy = rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max), (count, 2))
-    reported = radio.measured_levels(radio.evaluate(reported_xy).sinr_db, rng)
-    origin = np.array([area.x_min, area.y_min])
-    shape = (int(np.ceil((area.y_max - area.y_min) / _CELL_M)),
-             int(np.ceil((area.x_max - area.x_min) / _CELL_M)))
+class LocalReportMap:
+    """A map that knows nothing of the radio model: at each point, the shares of
+    ``density`` uniform reports per square metre (the world's receiver noise included, no
+    jammer) at each level, counted in a square of side ``square_m`` around it. What a survey
+    that dense gives without a model; bench_correction flies it."""
 
-    def cells(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        index = ((points - origin) / _CELL_M).astype(np.int64)
-        return (np.clip(index[:, 1], 0, shape[0] - 1), np.clip(index[:, 0], 0, shape[1] - 1))
+    def __init__(self, scenario: Scenario, radio: RadioModel, density: int, square_m: float):
+        area = scenario.area
+        rng = np.random.default_rng(SEED)
+        count = int(density * (area.x_max - area.x_min) * (area.y_max - area.y_min))
+        reported_xy = rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max), (count, 2))
+        reported = radio.measured_levels(radio.evaluate(reported_xy).sinr_db, rng)
+        self.origin = np.array([area.x_min, area.y_min])
+        self.shape = (int(np.ceil((area.y_max - area.y_min) / _CELL_M)),
+                      int(np.ceil((area.x_max - area.x_min) / _CELL_M)))
+        levels = len(radio.level_edges_db) + 1
+        counts = np.zeros((levels, *self.shape))
+        np.add.at(counts, (reported, *self._cells(reported_xy)), 1.0)
+        square = int(round(square_m / _CELL_M))
+        local = np.stack([uniform_filter(counts[level], square, mode="nearest")
+                          for level in range(levels)], axis=-1)
+        self._shares = local / np.maximum(local.sum(axis=-1, keepdims=True), 1e-12)
 
-    levels = len(radio.level_edges_db) + 1
-    counts = np.zeros((levels, *shape))
-    np.add.at(counts, (reported, *cells(reported_xy)), 1.0)
-    square = int(round(square_m / _CELL_M))
-    local = np.stack([uniform_filter(counts[level], square, mode="nearest")
-                      for level in range(levels)], axis=-1)[cells(xy)]
-    shares = local / np.maximum(local.sum(axis=-1, keepdims=True), 1e-12)
+    def _cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        index = ((xy - self.origin) / _CELL_M).astype(np.int64)
+        return (np.clip(index[..., 1], 0, self.shape[0] - 1),
+                np.clip(index[..., 0], 0, self.shape[1] - 1))
+
+    def shares(self, xy: np.ndarray) -> np.ndarray:
+        """The shares of reports at each level (..., levels) around the points ``xy``."""
+        return self._shares[self._cells(np.asarray(xy))]
+
+
+def _readings(radio: RadioModel, shares: np.ndarray) -> dict[str, np.ndarray]:
+    """Levels from report ``shares`` (n, levels): the most reported one, and with a noisy
+    receiver the band of the SINR that the share below the edge nearest a half-split puts
+    it at."""
     readings = {"the level most reported": shares.argmax(axis=-1)}
     if radio.measurement_noise_db > 0:
         below = np.cumsum(shares, axis=-1)[:, :-1]
