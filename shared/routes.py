@@ -4,7 +4,8 @@ stays connected, instead of as the crow flies.
 The map's levels are read on a coarse grid; moving through an uncovered cell costs
 ``uncovered_cost`` times its length, so routes bend around jammed zones and cross narrow gaps
 only where that is short. One Dijkstra per (map, destination) gives the distance from every
-grid node; a lookup is a bilinear interpolation. This is the map-aware feature of the extended
+grid node (or every node within reach of the trips asked about: ``REACH_FACTOR``); a lookup
+is a bilinear interpolation. This is the map-aware feature of the extended
 method: a one-step lookahead that reads it descends the route instead of walking into the
 first hole it meets.
 
@@ -75,6 +76,16 @@ class _EdgeWeights(NamedTuple):
 # Distance fields a route grid keeps by default: every destination of a batch of environments
 # (an in-process evaluation's whole fleet, training's environments in flight).
 FIELDS_KEPT = 4096
+# A batch of fields from Dijkstra stops where the route grows longer than a reach: this many
+# times the straight distance from the farthest position asked about to the destination, plus
+# the margin, rounded up to REACH_STEP_M (one Dijkstra call per reach). Dijkstra settles nodes
+# in the order of their distance, so every node within the reach has its exact distance and
+# every node beyond reads infinity; a query that reads one has its field computed whole. So the
+# values read are those of the whole field, bit for bit, and most fields cover a disc about
+# the trip instead of the map: on the city's 400 m map about 3x less work.
+REACH_FACTOR = 1.5
+REACH_MARGIN_M = 30.0
+REACH_STEP_M = 50.0
 
 
 class RouteGrid:
@@ -93,27 +104,44 @@ class RouteGrid:
         self.cache: OrderedDict[int, int] = OrderedDict()
         self.cache_size = cache_size
         self.store = np.empty((0, self.rows, self.cols), dtype=np.float32)
+        self._partial: set[int] = set()  # destination nodes whose field stops at a reach
 
     def node_of(self, xy: np.ndarray) -> np.ndarray:
         col = clamp(np.rint((xy[..., 0] - self.x0) / self.cell), 0, self.cols - 1)
         row = clamp(np.rint((xy[..., 1] - self.y0) / self.cell), 0, self.rows - 1)
         return (row * self.cols + col).astype(np.int64)
 
-    def slots(self, nodes: np.ndarray) -> np.ndarray:
+    def slots(self, nodes: np.ndarray, reach_m: np.ndarray | None = None) -> np.ndarray:
         """Slots in ``store`` of the distance fields to each destination node, computed on
         first use (once for a node asked for twice); beyond cache_size the least recently
-        used field's slot is reused."""
+        used field's slot is reused. With ``reach_m`` (one per node) a batch computed by
+        Dijkstra may stop beyond that route length (see REACH_FACTOR)."""
         wanted = nodes.tolist()
         for node in wanted:
             if node in self.cache:
                 self.cache.move_to_end(node)
         missing = list(dict.fromkeys(node for node in wanted if node not in self.cache))
-        if missing:
-            fields = (self._swept_fields(missing[0]) if len(missing) == 1
-                      else self._dijkstra(missing))
-            for node, field in zip(missing, fields, strict=True):
-                self._keep(node, field)
+        if len(missing) == 1:
+            self._keep(missing[0], self._swept_fields(missing[0])[0])
+        elif missing:
+            reach = {}
+            if reach_m is not None:
+                for node, metres in zip(wanted, reach_m.tolist(), strict=True):
+                    reach[node] = max(reach.get(node, 0.0), metres)
+            self._compute(missing, [reach.get(node, np.inf) for node in missing])
         return np.array([self.cache[node] for node in wanted], dtype=np.int64)
+
+    def _compute(self, nodes: list[int], reach_m: list[float]) -> None:
+        """Dijkstra's fields to ``nodes`` into the cache, each stopped at its reach rounded up
+        to REACH_STEP_M (infinite: whole), one call per distinct reach."""
+        limits = np.ceil(np.asarray(reach_m) / REACH_STEP_M) * REACH_STEP_M
+        for limit in np.unique(limits).tolist():
+            batch = [node for node, own in zip(nodes, limits.tolist(), strict=True)
+                     if own == limit]
+            for node, field in zip(batch, self._dijkstra(batch, limit), strict=True):
+                self._keep(node, field)
+                if np.isfinite(limit):
+                    self._partial.add(node)
 
     def sweep_ahead(self, destination: np.ndarray) -> Iterator[None]:
         """Sweep the field to ``destination`` (2,) into the cache one line at a time, pausing
@@ -127,11 +155,14 @@ class RouteGrid:
             self._keep(node, field)
 
     def _keep(self, node: int, field: np.ndarray) -> None:
-        slot = self._free_slot()
+        slot = self.cache.get(node)
+        if slot is None:
+            slot = self._free_slot()
         self.store[slot] = field.reshape(self.rows, self.cols)
         self.cache[node] = slot
+        self._partial.discard(node)
 
-    def _dijkstra(self, nodes: list[int]) -> np.ndarray:
+    def _dijkstra(self, nodes: list[int], limit: float = np.inf) -> np.ndarray:
         from scipy.sparse import coo_matrix  # noqa: PLC0415 (see the module docstring)
         from scipy.sparse.csgraph import dijkstra  # noqa: PLC0415
 
@@ -151,7 +182,7 @@ class RouteGrid:
                   np.concatenate([b.ravel() for _, b, _ in pairs]))),
                 shape=(n, n),
             ).tocsr()
-        return dijkstra(self._graph, directed=False, indices=nodes)
+        return dijkstra(self._graph, directed=False, indices=nodes, limit=limit)
 
     def _swept_fields(self, node: int) -> np.ndarray:
         """The field (1, rows, cols) to one destination, swept at once."""
@@ -189,7 +220,8 @@ class RouteGrid:
 
     def _free_slot(self) -> int:
         if len(self.cache) >= self.cache_size:
-            _, slot = self.cache.popitem(last=False)
+            node, slot = self.cache.popitem(last=False)
+            self._partial.discard(node)
         else:
             slot = len(self.cache)
             if slot == len(self.store):
@@ -202,7 +234,22 @@ class RouteGrid:
         """Route distance from positions ``xy`` (N, ..., 2) to each row's ``destination``
         (N, 2): the field interpolated at ``xy`` plus the last stretch to the exact point."""
         nodes = self.node_of(destination)
-        slot = self.slots(nodes)
+        straight = np.hypot(xy[..., 0] - destination[:, 0].reshape((-1,) + (1,) * (xy.ndim - 2)),
+                            xy[..., 1] - destination[:, 1].reshape((-1,) + (1,) * (xy.ndim - 2)))
+        reach = REACH_FACTOR * straight.reshape(len(nodes), -1).max(axis=1) + REACH_MARGIN_M
+        value = self._read(self.slots(nodes, reach), xy)
+        if self._partial:
+            short = ~np.isfinite(value.reshape(len(nodes), -1)).all(axis=1)
+            if short.any():  # a position beyond the reach: that field whole, and read again
+                beyond = list(dict.fromkeys(nodes[short].tolist()))
+                self._compute(beyond, [np.inf] * len(beyond))
+                value[short] = self._read(self.slots(nodes[short]), xy[short])
+        offset = np.hypot(destination[:, 0] - (self.x0 + (nodes % self.cols) * self.cell),
+                          destination[:, 1] - (self.y0 + (nodes // self.cols) * self.cell))
+        return value + offset.reshape((-1,) + (1,) * (xy.ndim - 2))
+
+    def _read(self, slot: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """The fields in ``slot`` (N,) interpolated at ``xy`` (N, ..., 2)."""
         fields = self.store
         fx = clamp((xy[..., 0] - self.x0) / self.cell, 0, self.cols - 1)
         fy = clamp((xy[..., 1] - self.y0) / self.cell, 0, self.rows - 1)
@@ -214,15 +261,12 @@ class RouteGrid:
         # Corners read through one flat index each: half the cost of three index arrays.
         corner = (field * self.rows + r0) * self.cols + c0
         flat = fields.reshape(-1)
-        value = (
+        return (
             flat[corner] * sx * sy
             + flat[corner + 1] * tx * sy
             + flat[corner + self.cols] * sx * ty
             + flat[corner + self.cols + 1] * tx * ty
         )
-        offset = np.hypot(destination[:, 0] - (self.x0 + (nodes % self.cols) * self.cell),
-                          destination[:, 1] - (self.y0 + (nodes // self.cols) * self.cell))
-        return value + offset.reshape((-1,) + (1,) * (xy.ndim - 2))
 
 
 def _sweep_lines(stacked: np.ndarray, weights: np.ndarray) -> Iterator[None]:

@@ -97,3 +97,25 @@ def test_a_field_swept_ahead_a_line_at_a_time_is_the_field_a_decision_would_swee
                                   direct.distance(xy, destination[None]))
     assert len(ahead.cache) == 1  # the decision found it: no second field
     assert list(ahead.sweep_ahead(destination)) == []
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), cost=st.floats(1.0, 20.0))
+def test_fields_stopped_at_a_reach_read_as_whole_fields_even_beyond_it(seed, cost):
+    """A batch of fields stops where routes grow longer than the trips asked about need
+    (``REACH_FACTOR``). Whatever is read, near the destination or far beyond the reach, must
+    be the whole field's value bit for bit: a field found short is computed whole."""
+    rng = np.random.default_rng(seed)
+    covered = rng.random((60, 60)) < rng.uniform(0.5, 1.0)
+    reached = RouteGrid(covered, 0.0, 0.0, 2.0, cost)
+    whole = RouteGrid(covered, 0.0, 0.0, 2.0, cost)
+    destinations = rng.uniform(0, 118, size=(6, 2))
+    nodes = list(dict.fromkeys(whole.node_of(destinations).tolist()))
+    whole._compute(nodes, [np.inf] * len(nodes))
+    near = destinations[:, None, :] + rng.uniform(-10, 10, size=(6, 5, 2))
+    np.testing.assert_array_equal(reached.distance(near, destinations),
+                                  whole.distance(near, destinations))
+    assert reached._partial  # short trips: the batch stopped at a reach
+    far = rng.uniform(0, 118, size=(6, 5, 2))
+    np.testing.assert_array_equal(reached.distance(far, destinations),
+                                  whole.distance(far, destinations))
