@@ -187,3 +187,22 @@ def test_unusable_architecture_cards_are_refused(architecture, message):
     data = save_bytes(tensors, metadata={"architecture": json.dumps(architecture)})
     with pytest.raises(WeightsError, match=re.escape(message)):
         from_bytes(data)
+
+
+def test_a_network_read_from_bytes_computes_without_its_subnormal_weights():
+    """Weight decay leaves dead units' weights subnormal, which some CPUs multiply dozens of
+    times slower. Read from bytes, the forward sees them as zeros and gives the same outputs;
+    the network's bytes keep them."""
+    module = trained_like(TorchValueNetwork(34, 2.0), seed=3, std=0.2)
+    with torch.no_grad():
+        weight = module.body[0].weight
+        weight[:8] = 1e-40  # eight dead units' incoming weights, decayed below normal
+    exact = module.inference()
+    data = to_bytes(exact)
+    read = from_bytes(data)
+    tiny = np.finfo(np.float32).tiny
+    assert not any(((np.abs(w) < tiny) & (w != 0)).any() for w, _ in read._layers)
+    assert ((np.abs(exact._layers[0][0]) < tiny) & (exact._layers[0][0] != 0)).sum() == 8 * 34
+    assert to_bytes(read) == data
+    inputs = inputs_like(read, 2000, seed=3)
+    np.testing.assert_array_equal(read(inputs), exact(inputs))
