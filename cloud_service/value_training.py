@@ -542,8 +542,10 @@ def train(
             loss.backward()
             optimizer.step()
         net.eval()
-        # Off the CPU the numpy form is a copy: the lookahead takes the updated one.
-        policy.value_net = net.inference()
+        # The lookahead takes the updated numpy form (off the CPU it is a copy), reading the
+        # weights that decay has left subnormal as zeros: the same values, without the cost
+        # some CPUs put on them (``Network.read_subnormals_as_zero``).
+        policy.value_net = net.inference().read_subnormals_as_zero()
         if done % config.target_sync_episodes == 0:
             target.load_state_dict(net.state_dict())
         counts = [int(np.count_nonzero(stats.outcomes == o)) for o in
@@ -567,7 +569,8 @@ def train(
             td_seconds += time.perf_counter() - chunk_start
             next_episode += chunk
             log_handle.flush()
-            scores.append({"episode": done, **validate(scenario, net.inference(),
+            scores.append({"episode": done, **validate(scenario,
+                                                       net.inference().read_subnormals_as_zero(),
                                                        config.validation_episodes, uavs),
                            "resident_mib": resident_mib()})
             leader = best_score(scores)
