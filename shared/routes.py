@@ -261,12 +261,15 @@ class RouteGrid:
         # Corners read through one flat index each: half the cost of three index arrays.
         corner = (field * self.rows + r0) * self.cols + c0
         flat = fields.reshape(-1)
-        return (
-            flat[corner] * sx * sy
-            + flat[corner + 1] * tx * sy
-            + flat[corner + self.cols] * sx * ty
-            + flat[corner + self.cols + 1] * tx * ty
-        )
+        # Beyond a field's reach a corner is infinite, and infinity times a zero weight is NaN:
+        # ``distance`` computes such a field whole and reads it again.
+        with np.errstate(invalid="ignore"):
+            return (
+                flat[corner] * sx * sy
+                + flat[corner + 1] * tx * sy
+                + flat[corner + self.cols] * sx * ty
+                + flat[corner + self.cols + 1] * tx * ty
+            )
 
 
 def _sweep_lines(stacked: np.ndarray, weights: np.ndarray) -> Iterator[None]:
