@@ -219,10 +219,6 @@ class RetrainConfig:
     # 2,000 left maps at 96.7-98 % (the estimate still 3-5 m off), at 4,000 at 98.4-98.6 %.
     refine_every: int = 600
     settle_after: int = 4000
-    # Points over the area labelled by the survey map, corrected by the jammer's estimate or
-    # hypotheses where there are any: the prior that tells the DNN what the uploads have not
-    # reached yet.
-    prior_points: int = 4000
     # Without a converged estimate, the DNN alone retrains once this many post-change
     # measurements are in, and the estimate has been tried ``min_tries`` times: four UAVs
     # bring 4,000 in after ~20 tries, 256 in a second, after two (the city: that map went out
@@ -533,7 +529,7 @@ class OnlineSinrMapper:
     def _prior_positions(self) -> np.ndarray:
         """Where the estimate-corrected map labels the area for the DNN (a fresh draw for
         each map version)."""
-        return uniform_positions(self.scenario, self.retrain.prior_points,
+        return uniform_positions(self.scenario, self.scenario.online_map.prior_points,
                                  np.random.default_rng(self._seed + self._version))
 
     def _shadowing_sigma(self, xy: np.ndarray) -> float:

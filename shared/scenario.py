@@ -221,6 +221,9 @@ class OnlineMap(_Strict):
 
     change_threshold: Positive  # nats of evidence one UAV's reports must pile up
     probability_floor: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)]
+    # Points the survey map (corrected by the jammer's estimate) labels for each refit: the
+    # prior that tells the network what the uploads have not reached.
+    prior_points: Annotated[int, Field(ge=1, le=1_000_000)]
 
 
 class Scenario(_Strict):
