@@ -589,3 +589,17 @@ def test_a_restarted_mapper_goes_on_refining_the_change_its_map_answered(mapping
     assert math.hypot(located[-1]["x"] - setting.x, located[-1]["y"] - setting.y) <= 3.0
     assert mapper.state()["phase"] == "watching"
 
+
+
+@pytest.mark.parametrize("points", [500, 3000])
+def test_a_refits_prior_is_as_large_as_the_scenario_says(mapping_scenario, no_jammer_map,
+                                                         points):
+    online = mapping_scenario.online_map.model_copy(update={"prior_points": points})
+    scenario = mapping_scenario.model_copy(update={"online_map": online})
+    mapper, _ = _online(scenario, *no_jammer_map)
+    prior = mapper._prior_positions()
+    mapper.close()
+    assert prior.shape == (points, 2)
+    area = scenario.area
+    assert (prior[:, 0] >= area.x_min).all() and (prior[:, 0] <= area.x_max).all()
+    assert (prior[:, 1] >= area.y_min).all() and (prior[:, 1] <= area.y_max).all()
