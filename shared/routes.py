@@ -22,7 +22,7 @@ destination sweeps that field ahead, a line at a time between decisions (``sweep
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Generator, Iterator
+from collections.abc import Callable, Generator, Iterator
 from typing import NamedTuple
 
 import numpy as np
@@ -111,11 +111,12 @@ class RouteGrid:
         row = clamp(np.rint((xy[..., 1] - self.y0) / self.cell), 0, self.rows - 1)
         return (row * self.cols + col).astype(np.int64)
 
-    def slots(self, nodes: np.ndarray, reach_m: np.ndarray | None = None) -> np.ndarray:
+    def slots(self, nodes: np.ndarray,
+              reach_m: Callable[[], np.ndarray] | None = None) -> np.ndarray:
         """Slots in ``store`` of the distance fields to each destination node, computed on
         first use (once for a node asked for twice); beyond cache_size the least recently
-        used field's slot is reused. With ``reach_m`` (one per node) a batch computed by
-        Dijkstra may stop beyond that route length (see REACH_FACTOR)."""
+        used field's slot is reused. With ``reach_m`` (giving one route length per node) a
+        batch computed by Dijkstra may stop beyond it (see REACH_FACTOR)."""
         wanted = nodes.tolist()
         for node in wanted:
             if node in self.cache:
@@ -126,7 +127,7 @@ class RouteGrid:
         elif missing:
             reach = {}
             if reach_m is not None:
-                for node, metres in zip(wanted, reach_m.tolist(), strict=True):
+                for node, metres in zip(wanted, reach_m().tolist(), strict=True):
                     reach[node] = max(reach.get(node, 0.0), metres)
             self._compute(missing, [reach.get(node, np.inf) for node in missing])
         return np.array([self.cache[node] for node in wanted], dtype=np.int64)
@@ -234,9 +235,13 @@ class RouteGrid:
         """Route distance from positions ``xy`` (N, ..., 2) to each row's ``destination``
         (N, 2): the field interpolated at ``xy`` plus the last stretch to the exact point."""
         nodes = self.node_of(destination)
-        straight = np.hypot(xy[..., 0] - destination[:, 0].reshape((-1,) + (1,) * (xy.ndim - 2)),
-                            xy[..., 1] - destination[:, 1].reshape((-1,) + (1,) * (xy.ndim - 2)))
-        reach = REACH_FACTOR * straight.reshape(len(nodes), -1).max(axis=1) + REACH_MARGIN_M
+
+        def reach() -> np.ndarray:  # only when a batch of fields is computed
+            rows = (-1,) + (1,) * (xy.ndim - 2)
+            straight = np.hypot(xy[..., 0] - destination[:, 0].reshape(rows),
+                                xy[..., 1] - destination[:, 1].reshape(rows))
+            return REACH_FACTOR * straight.reshape(len(nodes), -1).max(axis=1) + REACH_MARGIN_M
+
         value = self._read(self.slots(nodes, reach), xy)
         if self._partial:
             short = ~np.isfinite(value.reshape(len(nodes), -1)).all(axis=1)
