@@ -260,6 +260,12 @@ _SIGMA_CHOICES_DB = np.geomspace(0.01, 10.0, 61)  # 12 % apart
 _SIGMA_FIT_POINTS = 2000  # a stride through more points: the fit needs no more
 
 
+def sigma_fit_sample(xy: np.ndarray) -> np.ndarray:
+    """The points of ``xy`` that ``fit_shadowing_sigma`` reads (the stride it takes): a caller
+    that labels points for it need label no others."""
+    return xy[:: max(1, len(xy) // _SIGMA_FIT_POINTS)]
+
+
 def _fitted_sigma(ideal_db: np.ndarray, lower_db: np.ndarray, upper_db: np.ndarray) -> float:
     stride = max(1, len(ideal_db) // _SIGMA_FIT_POINTS)
     ideal_db, lower_db, upper_db = ideal_db[::stride], lower_db[::stride], upper_db[::stride]

@@ -39,6 +39,7 @@ from cloud_service.jammer_estimation import (
     fit_shadowing_sigma,
     locate_jammer,
     positions_from_features,
+    sigma_fit_sample,
 )
 from cloud_service.sinr_memory import SinrMemory, Uploads
 from shared.measurements import (
@@ -534,6 +535,7 @@ class OnlineSinrMapper:
 
     def _shadowing_sigma(self, xy: np.ndarray) -> float:
         """How far the survey map says the world departs from the ideal model, at ``xy``."""
+        xy = sigma_fit_sample(xy)
         return fit_shadowing_sigma(RadioModel(self.scenario, shadowed=False), xy,
                                    self._base_probabilities(xy).argmax(axis=-1))
 
