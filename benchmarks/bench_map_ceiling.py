@@ -19,10 +19,11 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.ndimage import uniform_filter
-from scipy.special import ndtr, ndtri
+from scipy.special import ndtr
 
 from benchmarks.bench_adaptation import TRUTH_SPACING_M, TruthGrid
 from benchmarks.common import Figure
+from cloud_service.jammer_estimation import map_reading
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
 
@@ -30,7 +31,6 @@ SINR_ERRORS_DB = (0.1, 0.25, 0.5, 1.0)
 REPORTS_PER_SQUARE_METRE = (10, 100)
 LOCAL_SQUARES_M = (0.5, 1.0, 1.5, 2.5)
 _CELL_M = 0.5  # reports are counted per cell of this side, then summed over a square of cells
-_SHARE_CLIP = 1e-3
 SEED = 0
 
 
@@ -112,14 +112,11 @@ class LocalReportMap:
 
 def _readings(radio: RadioModel, shares: np.ndarray) -> dict[str, np.ndarray]:
     """Levels from report ``shares`` (n, levels): the most reported one, and with a noisy
-    receiver the band of the SINR that the share below the edge nearest a half-split puts
-    it at."""
+    receiver the band of the SINR that the cloud's reading of a map puts it in
+    (``map_reading``, at the receiver's own noise)."""
     readings = {"the level most reported": shares.argmax(axis=-1)}
     if radio.measurement_noise_db > 0:
-        below = np.cumsum(shares, axis=-1)[:, :-1]
-        edge = np.abs(below - 0.5).argmin(axis=-1)
-        share = np.clip(below[np.arange(len(below)), edge], _SHARE_CLIP, 1.0 - _SHARE_CLIP)
-        read_db = radio.level_edges_db[edge] - radio.measurement_noise_db * ndtri(share)
+        read_db, _ = map_reading(radio, shares, radio.measurement_noise_db)
         readings["the level read through the noise"] = np.searchsorted(radio.level_edges_db,
                                                                         read_db)
     return readings

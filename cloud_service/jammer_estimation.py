@@ -225,6 +225,22 @@ def report_shares(radio: RadioModel, sinr_db: np.ndarray,
     return np.diff(below, axis=-1)
 
 
+def map_reading(radio: RadioModel, probabilities: np.ndarray,
+                report_sigma_db: float = REPORT_SIGMA_DB) -> tuple[np.ndarray, np.ndarray]:
+    """Where a map's ``probabilities`` (n, levels) of the levels reported put the SINR (dB,
+    (n,)): at the level edge whose share of reports below is nearest a half, edge -
+    report_sigma_db x probit(share), the ordinal probit of reports erring by
+    N(0, report_sigma_db^2); and whether that share says more than which side of the edge
+    (within ``MAP_SHARE_READ`` of neither 0 nor 1)."""
+    below = np.cumsum(probabilities, axis=-1)[:, :-1]  # share below each edge
+    edge = np.abs(below - 0.5).argmin(axis=-1)
+    share = below[np.arange(len(below)), edge]
+    read = (share > MAP_SHARE_READ) & (share < 1.0 - MAP_SHARE_READ)
+    reading_db = radio.level_edges_db[edge] - report_sigma_db * ndtri(
+        np.clip(share, MAP_SHARE_READ, 1.0 - MAP_SHARE_READ))
+    return reading_db, read
+
+
 def _prior_of_map(radio: RadioModel, ideal_db: np.ndarray, shadowing_sigma_db: float,
                   probabilities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean and sd (n,) of the no-jammer SINR before the map's band is imposed: the ideal
@@ -232,12 +248,7 @@ def _prior_of_map(radio: RadioModel, ideal_db: np.ndarray, shadowing_sigma_db: f
     ``probabilities`` (n, levels) read near the level edge whose share below is nearest a
     half (see ``MAP_READING_SD_DB``). Where the map is certain (a share beyond
     ``MAP_SHARE_READ``, as with levels given) the ideal model's prior stands alone."""
-    below = np.cumsum(probabilities, axis=-1)[:, :-1]  # share below each edge
-    edge = np.abs(below - 0.5).argmin(axis=-1)
-    share = below[np.arange(len(below)), edge]
-    read = (share > MAP_SHARE_READ) & (share < 1.0 - MAP_SHARE_READ)
-    reading_db = radio.level_edges_db[edge] - REPORT_SIGMA_DB * ndtri(
-        np.clip(share, MAP_SHARE_READ, 1.0 - MAP_SHARE_READ))
+    reading_db, read = map_reading(radio, probabilities)
     prior_precision = shadowing_sigma_db**-2.0
     map_precision = np.where(read, MAP_READING_SD_DB**-2.0, 0.0)
     precision = prior_precision + map_precision
@@ -260,15 +271,14 @@ _SIGMA_CHOICES_DB = np.geomspace(0.01, 10.0, 61)  # 12 % apart
 _SIGMA_FIT_POINTS = 2000  # a stride through more points: the fit needs no more
 
 
-def sigma_fit_sample(xy: np.ndarray) -> np.ndarray:
-    """The points of ``xy`` that ``fit_shadowing_sigma`` reads (the stride it takes): a caller
-    that labels points for it need label no others."""
-    return xy[:: max(1, len(xy) // _SIGMA_FIT_POINTS)]
+def sigma_fit_sample(rows: np.ndarray) -> np.ndarray:
+    """The rows of points (or of values at them) that ``fit_shadowing_sigma`` reads: a stride
+    through them. A caller that labels points for it need label no others."""
+    return rows[:: max(1, len(rows) // _SIGMA_FIT_POINTS)]
 
 
 def _fitted_sigma(ideal_db: np.ndarray, lower_db: np.ndarray, upper_db: np.ndarray) -> float:
-    stride = max(1, len(ideal_db) // _SIGMA_FIT_POINTS)
-    ideal_db, lower_db, upper_db = ideal_db[::stride], lower_db[::stride], upper_db[::stride]
+    ideal_db, lower_db, upper_db = (sigma_fit_sample(v) for v in (ideal_db, lower_db, upper_db))
     sigmas = _SIGMA_CHOICES_DB[:, None]
     log_model = _log_band_probability((lower_db - ideal_db) / sigmas,
                                       (upper_db - ideal_db) / sigmas)

@@ -590,7 +590,6 @@ def test_a_restarted_mapper_goes_on_refining_the_change_its_map_answered(mapping
     assert mapper.state()["phase"] == "watching"
 
 
-
 @pytest.mark.parametrize("points", [500, 3000])
 def test_a_refits_prior_is_as_large_as_the_scenario_says(mapping_scenario, no_jammer_map,
                                                          points):
