@@ -771,6 +771,33 @@ def corrected_level_probabilities(
     return probabilities.reshape(*xy.shape[:-1], scenario.channel.level_count)
 
 
+def ideal_model_spread_db(scenario: Scenario, survey_sigma_db: float) -> float | None:
+    """How far a report may lie from the ideal model's SINR where the survey map agrees with
+    that model: the survey map's fitted departure from it (``fit_shadowing_sigma``) and the
+    receivers' noise (their datasheet's, ``uav.measurement_noise_db``). None where that
+    spread is over half the narrowest level band: the model then cannot tell a level from
+    its neighbour, and every report would look probable by it (icc2021-shadowed: 6.4 dB
+    against a 0.8 dB band; icc2021: 0.03 dB)."""
+    spread = math.hypot(survey_sigma_db, scenario.uav.measurement_noise_db)
+    narrowest = float(np.diff(scenario.channel.level_edges_db).min(initial=np.inf))
+    return spread if spread <= 0.5 * narrowest else None
+
+
+def ideal_report_probability(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
+                             jammer: JammerEstimate | None, spread_db: float) -> np.ndarray:
+    """How probable the ideal model (Eq. 1-5, with the estimated ``jammer`` if one is
+    present) makes each reported level (n,) at ``xy`` (n, 2), give or take ``spread_db``
+    (``ideal_model_spread_db``); 0 where ``xy`` is NaN (a report that cannot be placed)."""
+    radio = RadioModel(scenario, shadowed=False)
+    params = (None if jammer is None or not jammer.present else
+              JammerParams(jammer.x, jammer.y, jammer.power_w, scenario.jammer.height_m))
+    sinr_db = radio.evaluate(np.asarray(xy, dtype=np.float64), params).sinr_db
+    lower, upper = _band_edges(radio, np.asarray(levels, dtype=np.int64))
+    with np.errstate(invalid="ignore"):
+        return np.exp(_log_band_probability((lower - sinr_db) / spread_db,
+                                            (upper - sinr_db) / spread_db))
+
+
 def _map_at(scenario: Scenario, map_at: Callable[[np.ndarray], np.ndarray],
             xy: np.ndarray) -> np.ndarray:
     """The no-jammer map's probabilities of each level (n, levels) at points ``xy`` (..., 2),

@@ -37,6 +37,8 @@ from cloud_service.jammer_estimation import (
     corrected_level_probabilities,
     corrected_levels,
     fit_shadowing_sigma,
+    ideal_model_spread_db,
+    ideal_report_probability,
     locate_jammer,
     positions_from_features,
     sigma_fit_sample,
@@ -318,8 +320,12 @@ class OnlineSinrMapper:
         self._change: _Change | None = None  # set while a change is being handled
         self._busy = False
         self._worker: threading.Thread | None = None
+        survey_sigma_db = self._shadowing_sigma(self._prior_positions())
+        # How far reports may lie from the ideal model, where it can vouch for them at all
+        # (``_report_probability``): a property of the survey map, fitted once.
+        self._model_spread_db = ideal_model_spread_db(scenario, survey_sigma_db)
         if estimate is not None:
-            self._estimate_sigma_db = self._shadowing_sigma(self._prior_positions())
+            self._estimate_sigma_db = survey_sigma_db
             if refining_since is not None:  # as if that map had just been fitted
                 done = len(memory.since(refining_since))
                 self._change = _Change(refining_since, done, estimate, done, done)
@@ -393,14 +399,22 @@ class OnlineSinrMapper:
 
     def _report_probability(self, stored: MeasurementBatch, probabilities: np.ndarray,
                             xy: np.ndarray) -> np.ndarray:
-        """How probable each stored report was: by the map in service, or, where a jammer
-        estimate stands behind it, by that estimate's model if it expected the report more.
-        A DNN fitted to a jammed zone errs along the zone's edge, and the lookahead flies
-        its UAVs along that edge: one UAV's reports there contradict the map again and
-        again (in-process, a false change every 15-25 min of flight with a still jammer).
-        A moved or retuned jammer contradicts the estimate too, so a change still shows.
+        """How probable each stored report was: by the map in service, or by a model that
+        expected it more: the ideal model (with the jammer estimate, if any) where the survey
+        map says the world keeps to it closely (``ideal_model_spread_db``), and the survey map
+        corrected by a jammer estimate, where one stands behind the map.
+        A DNN errs along its levels' edges: the survey map of icc2021 is confidently wrong
+        there often enough that the detector raised 2 false changes in 30 min of four UAVs'
+        flight at a probability floor of 0.002, none when the ideal model vouches for such
+        reports; and a DNN fitted to a jammed zone errs along the zone's edge, where the
+        lookahead flies its UAVs, so one UAV's reports there contradict it again and again
+        (in-process, a false change every 15-25 min of flight with a still jammer). A moved
+        or retuned jammer contradicts the models too, so a change still shows.
         ``xy``: where the reports were taken (``positions_from_features``)."""
         reported = np.take_along_axis(probabilities, stored.levels[:, None], -1)[:, 0]
+        if self._model_spread_db is not None:
+            reported = np.fmax(reported, ideal_report_probability(
+                self.scenario, xy, stored.levels, self.estimate, self._model_spread_db))
         if self.estimate is None or not self.estimate.present:
             return reported
         model = corrected_level_probabilities(

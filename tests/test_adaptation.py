@@ -137,8 +137,9 @@ def test_detector_fires_on_one_uavs_run_of_contradictions_not_on_scattered_ones(
 
 
 def test_the_scenario_sets_the_detector(scenario):
-    assert ChangeDetector.of(scenario) == ChangeDetector(3, 12.0, 0.05)
-    assert ChangeDetector.of(load_scenario("icc2021-shadowed")).threshold == 24.0
+    assert ChangeDetector.of(scenario) == ChangeDetector(3, 12.0, 0.002)
+    shadowed = ChangeDetector.of(load_scenario("icc2021-shadowed"))
+    assert (shadowed.threshold, shadowed.floor) == (24.0, 0.05)
 
 
 # -- the estimate on the wire -----------------------------------------------------------------

@@ -19,6 +19,8 @@ from cloud_service.jammer_estimation import (
     corrected_levels,
     estimate_jammer,
     fit_shadowing_sigma,
+    ideal_model_spread_db,
+    ideal_report_probability,
     jammer_hypotheses,
     locate_jammer,
     positions_from_features,
@@ -392,3 +394,45 @@ def test_locating_once_gives_what_the_estimate_and_the_hypotheses_give_apart():
             assert fit.hypotheses is None
         outcomes.add(apart is None)
     assert outcomes == {True, False}
+
+
+# -- the ideal model vouching for reports -------------------------------------------------------
+def test_the_ideal_model_vouches_only_where_the_survey_map_keeps_to_it(scenario, shadowed):
+    """Its spread: the survey map's departure and the receivers' noise, added in quadrature
+    (0.3 and 0.4 dB give 0.5 dB), and none at all once over half icc2021's narrowest band,
+    (-2.21) - (-3.0) = 0.79 dB."""
+    assert ideal_model_spread_db(scenario, 0.3) == pytest.approx(0.3)
+    assert ideal_model_spread_db(scenario, 0.39) == pytest.approx(0.39)
+    assert ideal_model_spread_db(scenario, 0.4) is None
+    noisy = variant(scenario, uav={"measurement_noise_db": 0.4})
+    assert ideal_model_spread_db(noisy, 0.0) is None  # 0.4 dB > 0.395 dB
+    assert ideal_model_spread_db(variant(scenario, uav={"measurement_noise_db": 0.3}),
+                                 0.0) == pytest.approx(0.3)
+    assert ideal_model_spread_db(shadowed, 6.3) is None
+
+
+def test_the_ideal_models_probabilities_of_a_report(scenario):
+    """Over the three levels they sum to one; with a spread of 0.01 dB the model's own level
+    is near certain wherever the SINR is 0.05 dB (5 sds) or more from an edge; a jammer
+    estimated right there makes the no-jammer level improbable; a report with no position
+    gets nothing."""
+    rng = np.random.default_rng(0)
+    xy = uniform_points(scenario, rng, 400)
+    radio = RadioModel(scenario, shadowed=False)
+    quiet = radio.evaluate(xy)
+    levels = np.arange(scenario.channel.level_count)
+    each = np.stack([ideal_report_probability(scenario, xy, np.full(len(xy), k), None, 0.01)
+                     for k in levels], axis=1)
+    np.testing.assert_allclose(each.sum(axis=1), 1.0, atol=1e-9)
+    clear = np.abs(quiet.sinr_db[:, None] - radio.level_edges_db[None]).min(axis=1) >= 0.05
+    assert clear.mean() > 0.9
+    assert (each[clear, quiet.level[clear]] > 0.999).all()
+    at = np.array([[10.0, -20.0]])
+    under = JammerEstimate(present=True, x=10.0, y=-20.0, power_w=1.0,
+                           effective_power_dbm=10.0, sd_x_m=1.0, sd_y_m=1.0, sd_power_db=0.5,
+                           measurements=1000, log_likelihood_ratio=50.0)
+    level_here = radio.evaluate(at).level
+    assert ideal_report_probability(scenario, at, level_here, None, 0.01)[0] > 0.999
+    assert ideal_report_probability(scenario, at, level_here, under, 0.01)[0] < 0.001
+    assert ideal_report_probability(scenario, np.array([[np.nan, np.nan]]), np.array([1]),
+                                    None, 0.01)[0] == 0.0

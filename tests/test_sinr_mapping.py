@@ -335,6 +335,35 @@ def test_reports_from_outside_the_area_are_no_evidence_of_a_change(mapping_scena
         mapper.close()
 
 
+def test_reports_the_ideal_model_expects_are_no_evidence_where_the_map_errs(mapping_scenario,
+                                                                          no_jammer_map):
+    """Where the survey map is confidently wrong about a level (its edges), one UAV's reports
+    of the true level raise no change in icc2021, whose survey map follows the ideal model
+    closely: the model vouches for them. The same reports raise one where the model is not
+    let vouch (as in a world whose survey departs from it, the shadowed one)."""
+    network, accuracy = no_jammer_map
+    area = mapping_scenario.area
+    grid = np.stack(np.meshgrid(np.arange(area.x_min, area.x_max, 0.25),
+                                np.arange(area.y_min, area.y_max, 0.25)), axis=-1).reshape(-1, 2)
+    truth = RadioModel(mapping_scenario).evaluate(grid).level
+    probability = predict_probabilities(network, scenario_features(mapping_scenario, grid))
+    of_truth = probability[np.arange(len(grid)), truth]
+    worst = np.argsort(of_truth)[:60]  # the map's most confident errors
+    assert of_truth[worst].max() < 0.05  # each at least 1.9 nats of evidence
+    changes = {}
+    for vouching in (True, False):
+        mapper, _ = _online(mapping_scenario, network, accuracy, background=False)
+        assert mapper._model_spread_db is not None and mapper._model_spread_db < 0.1
+        if not vouching:
+            mapper._model_spread_db = None
+        mapper.ingest(labelled_batch(mapping_scenario, grid[worst], truth[worst],
+                                     np.random.default_rng(0), time=np.arange(60) * 0.1,
+                                     source="uav-0"))
+        changes[vouching] = _types(mapper).count("change_detected")
+        mapper.close()
+    assert changes == {True: 0, False: 1}
+
+
 def test_background_adaptation_publishes_without_blocking(mapping_scenario, no_jammer_map):
     network, accuracy = no_jammer_map
     published: list[PublishedWeights] = []
