@@ -527,13 +527,14 @@ def jammer_hypotheses(
     mass: float = HYPOTHESES_MASS,
     most: int = MOST_HYPOTHESES,
     presence_llr: float = HYPOTHESES_LLR,
+    report_sigma_db: float = REPORT_SIGMA_DB,
 ) -> JammerHypotheses | None:
     """The fewest coarse hypotheses (at most ``most``) that hold ``mass`` of the posterior of
     a jammer of the scenario's expected powers, when one explains the uploads better than
     none (best LLR at least ``presence_llr``); None otherwise.
     The same search and model as ``estimate_jammer``, which answers None in that case when
     the posterior is too wide."""
-    searched = _default_search(scenario, xy, levels, no_jammer_levels)
+    searched = _default_search(scenario, xy, levels, no_jammer_levels, report_sigma_db)
     if searched is None:
         return None
     return _hypotheses(scenario, searched, mass, most, presence_llr)
@@ -545,10 +546,12 @@ class JammerFit(NamedTuple):
 
 
 def locate_jammer(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, *,
-                  no_jammer_levels: np.ndarray | None = None) -> JammerFit:
+                  no_jammer_levels: np.ndarray | None = None,
+                  report_sigma_db: float = REPORT_SIGMA_DB) -> JammerFit:
     """``estimate_jammer`` and, if it gives no estimate, ``jammer_hypotheses``, both with
-    their defaults, from one coarse search (most of the cost of each)."""
-    searched = _default_search(scenario, xy, levels, no_jammer_levels)
+    their defaults but ``report_sigma_db``, from one coarse search (most of the cost of
+    each)."""
+    searched = _default_search(scenario, xy, levels, no_jammer_levels, report_sigma_db)
     if searched is None:
         return JammerFit(None, None)
     estimate = _decide(scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M)
@@ -783,19 +786,20 @@ def ideal_model_spread_db(scenario: Scenario, survey_sigma_db: float) -> float |
     return spread if spread <= 0.5 * narrowest else None
 
 
-def ideal_report_probability(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
-                             jammer: JammerEstimate | None, spread_db: float) -> np.ndarray:
+def ideal_level_probabilities(scenario: Scenario, xy: np.ndarray,
+                              jammer: JammerEstimate | None, spread_db: float) -> np.ndarray:
     """How probable the ideal model (Eq. 1-5, with the estimated ``jammer`` if one is
-    present) makes each reported level (n,) at ``xy`` (n, 2), give or take ``spread_db``
-    (``ideal_model_spread_db``); 0 where ``xy`` is NaN (a report that cannot be placed)."""
+    present) makes each level at points ``xy`` (n, 2), give or take ``spread_db``
+    (``ideal_model_spread_db``): (n, levels); 0 where ``xy`` is NaN (a report that cannot be
+    placed)."""
     radio = RadioModel(scenario, shadowed=False)
     params = (None if jammer is None or not jammer.present else
               JammerParams(jammer.x, jammer.y, jammer.power_w, scenario.jammer.height_m))
-    sinr_db = radio.evaluate(np.asarray(xy, dtype=np.float64), params).sinr_db
-    lower, upper = _band_edges(radio, np.asarray(levels, dtype=np.int64))
+    sinr_db = radio.evaluate(np.asarray(xy, dtype=np.float64), params).sinr_db[:, None]
+    bounds = np.concatenate([[-np.inf], radio.level_edges_db, [np.inf]])
     with np.errstate(invalid="ignore"):
-        return np.exp(_log_band_probability((lower - sinr_db) / spread_db,
-                                            (upper - sinr_db) / spread_db))
+        return np.exp(_log_band_probability((bounds[:-1] - sinr_db) / spread_db,
+                                            (bounds[1:] - sinr_db) / spread_db))
 
 
 def _map_at(scenario: Scenario, map_at: Callable[[np.ndarray], np.ndarray],

@@ -20,7 +20,7 @@ from cloud_service.jammer_estimation import (
     estimate_jammer,
     fit_shadowing_sigma,
     ideal_model_spread_db,
-    ideal_report_probability,
+    ideal_level_probabilities,
     jammer_hypotheses,
     locate_jammer,
     positions_from_features,
@@ -411,18 +411,17 @@ def test_the_ideal_model_vouches_only_where_the_survey_map_keeps_to_it(scenario,
     assert ideal_model_spread_db(shadowed, 6.3) is None
 
 
-def test_the_ideal_models_probabilities_of_a_report(scenario):
+def test_the_ideal_models_probabilities_of_the_levels(scenario):
     """Over the three levels they sum to one; with a spread of 0.01 dB the model's own level
     is near certain wherever the SINR is 0.05 dB (5 sds) or more from an edge; a jammer
-    estimated right there makes the no-jammer level improbable; a report with no position
-    gets nothing."""
+    estimated right there makes the no-jammer level improbable; a point that cannot be
+    placed gets nothing."""
     rng = np.random.default_rng(0)
     xy = uniform_points(scenario, rng, 400)
     radio = RadioModel(scenario, shadowed=False)
     quiet = radio.evaluate(xy)
-    levels = np.arange(scenario.channel.level_count)
-    each = np.stack([ideal_report_probability(scenario, xy, np.full(len(xy), k), None, 0.01)
-                     for k in levels], axis=1)
+    each = ideal_level_probabilities(scenario, xy, None, 0.01)
+    assert each.shape == (400, scenario.channel.level_count)
     np.testing.assert_allclose(each.sum(axis=1), 1.0, atol=1e-9)
     clear = np.abs(quiet.sinr_db[:, None] - radio.level_edges_db[None]).min(axis=1) >= 0.05
     assert clear.mean() > 0.9
@@ -431,8 +430,8 @@ def test_the_ideal_models_probabilities_of_a_report(scenario):
     under = JammerEstimate(present=True, x=10.0, y=-20.0, power_w=1.0,
                            effective_power_dbm=10.0, sd_x_m=1.0, sd_y_m=1.0, sd_power_db=0.5,
                            measurements=1000, log_likelihood_ratio=50.0)
-    level_here = radio.evaluate(at).level
-    assert ideal_report_probability(scenario, at, level_here, None, 0.01)[0] > 0.999
-    assert ideal_report_probability(scenario, at, level_here, under, 0.01)[0] < 0.001
-    assert ideal_report_probability(scenario, np.array([[np.nan, np.nan]]), np.array([1]),
-                                    None, 0.01)[0] == 0.0
+    level_here = int(radio.evaluate(at).level[0])
+    assert ideal_level_probabilities(scenario, at, None, 0.01)[0, level_here] > 0.999
+    assert ideal_level_probabilities(scenario, at, under, 0.01)[0, level_here] < 0.001
+    assert (ideal_level_probabilities(scenario, np.array([[np.nan, np.nan]]), None,
+                                      0.01) == 0.0).all()
