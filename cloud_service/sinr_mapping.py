@@ -273,7 +273,7 @@ class OnlineSinrMapper:
 
     ``clock`` stamps the events: time.time in service, the simulated time in simulations.
     ``estimate``: the jammer estimate behind ``network``, for a cloud that restarts on the map
-    it last published (the detector weighs reports by it, see ``_report_probability``), and
+    it last published (the detector weighs reports by it, see ``report_probability``), and
     ``refining_since`` the start of the change that map was still refining: the refinement
     goes on from the memory, which the restart kept.
     """
@@ -370,7 +370,7 @@ class OnlineSinrMapper:
                 self._recent.extend((probabilities.argmax(-1) == stored.levels).tolist())
                 if self._change is None:
                     xy = positions_from_features(self.scenario, stored.features)
-                    probability = self._report_probability(stored, probabilities, xy)
+                    probability = self.report_probability(stored, probabilities, xy)
                     # The map is learned over the area only and extrapolates past its edge,
                     # where a UAV flown out (avoidance pushes some out in a crowd) contradicts
                     # it with nothing changed: 16 UAVs on Table I's 1 W settings raised a false
@@ -397,8 +397,14 @@ class OnlineSinrMapper:
                 self._run(job)
         return IngestReport(len(stored), duplicates, check)
 
-    def _report_probability(self, stored: MeasurementBatch, probabilities: np.ndarray,
-                            xy: np.ndarray) -> np.ndarray:
+    @property
+    def model_spread_db(self) -> float | None:
+        """How far reports may lie from the ideal model where it is the no-jammer map; None
+        where the survey map departs from it too far (``_no_jammer_probabilities``)."""
+        return self._model_spread_db
+
+    def report_probability(self, stored: MeasurementBatch, probabilities: np.ndarray,
+                           xy: np.ndarray | None = None) -> np.ndarray:
         """How probable each stored report was: by the map in service, or by a model that
         expected it more: the ideal model (with the jammer estimate, if any) where the survey
         map says the world keeps to it closely (``ideal_model_spread_db``), and the survey map
@@ -410,7 +416,10 @@ class OnlineSinrMapper:
         lookahead flies its UAVs, so one UAV's reports there contradict it again and again
         (in-process, a false change every 15-25 min of flight with a still jammer). A moved
         or retuned jammer contradicts the models too, so a change still shows.
-        ``xy``: where the reports were taken (``positions_from_features``)."""
+        ``probabilities``: the map's of every level for each report; ``xy``: where the
+        reports were taken (``positions_from_features`` of their features, if not given)."""
+        if xy is None:
+            xy = positions_from_features(self.scenario, stored.features)
         reported = np.take_along_axis(probabilities, stored.levels[:, None], -1)[:, 0]
         if self._model_spread_db is not None:
             ideal = ideal_level_probabilities(self.scenario, xy, self.estimate,
