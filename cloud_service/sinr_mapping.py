@@ -261,8 +261,9 @@ class OnlineSinrMapper:
        power the jammer may have, each in proportion to its probability
        (``jammer_hypotheses``), changed only where the survey map's level became improbable;
     2. the first converged estimate corrects the no-jammer map (``base_network``, learned
-       from a survey) into a prior over the whole area; the DNN is fitted to the prior plus
-       every post-change upload and published at once, with the estimate;
+       from a survey, or the ideal model where the survey keeps to it:
+       ``_no_jammer_probabilities``) into a prior over the whole area; the DNN is fitted to
+       the prior plus every post-change upload and published at once, with the estimate;
     3. every ``retrain.refine_every`` further measurements, estimate and fit again, until
        ``retrain.settle_after``; then the detector re-arms on the final map.
     Without any converged estimate, the DNN alone retrains on ``retrain.min_samples``
