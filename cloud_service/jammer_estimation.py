@@ -793,13 +793,17 @@ def ideal_level_probabilities(scenario: Scenario, xy: np.ndarray,
     (``ideal_model_spread_db``): (n, levels); 0 where ``xy`` is NaN (a report that cannot be
     placed)."""
     radio = RadioModel(scenario, shadowed=False)
-    params = (None if jammer is None or not jammer.present else
-              JammerParams(jammer.x, jammer.y, jammer.power_w, scenario.jammer.height_m))
+    params = None if jammer is None or not jammer.present else _params_of(scenario, jammer)
     sinr_db = radio.evaluate(np.asarray(xy, dtype=np.float64), params).sinr_db[:, None]
-    bounds = np.concatenate([[-np.inf], radio.level_edges_db, [np.inf]])
+    lower_db, upper_db = _band_edges(radio, np.arange(scenario.channel.level_count))
     with np.errstate(invalid="ignore"):
-        return np.exp(_log_band_probability((bounds[:-1] - sinr_db) / spread_db,
-                                            (bounds[1:] - sinr_db) / spread_db))
+        return np.exp(_log_band_probability((lower_db - sinr_db) / spread_db,
+                                            (upper_db - sinr_db) / spread_db))
+
+
+def _params_of(scenario: Scenario, estimate: JammerEstimate) -> JammerParams:
+    """The radio model's jammer for a present ``estimate`` (at the scenario's jammer height)."""
+    return JammerParams(estimate.x, estimate.y, estimate.power_w, scenario.jammer.height_m)
 
 
 def _map_at(scenario: Scenario, map_at: Callable[[np.ndarray], np.ndarray],
@@ -837,8 +841,8 @@ def _corrected(scenario: Scenario, no_jammer: np.ndarray,
         if not estimate.present:
             total = total + weight * certain
             continue
-        params = JammerParams(estimate.x, estimate.y, estimate.power_w, scenario.jammer.height_m)
-        jammed = radio.sinr_of(signal, co_channel, radio.jammer_interference(flat, params))
+        jammed = radio.sinr_of(signal, co_channel,
+                               radio.jammer_interference(flat, _params_of(scenario, estimate)))
         loss_db = ideal_db - 10.0 * np.log10(jammed)
         # Level k needs the no-jammer SINR in [bounds_k + loss, bounds_k+1 + loss) and its band.
         low = np.maximum(band_low, bounds[:-1] + loss_db)
