@@ -33,8 +33,10 @@ demo: install
 	$(BIN)/jamnav up --uavs 4 --realtime --rate 20 --duration 60 --swap-jammer-at 30 \
 		--swap-to 25,-10,1 --run-dir $(DEMO_DIR)
 
+# Two workers (pytest-xdist): the systems of processes on one, the in-process tests on the
+# other (tests/conftest.py groups them).
 test: install
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n 2 --dist loadgroup
 
 # Half an hour of faults: a process (world, cloud, an agent, the router) killed or frozen every
 # 10-30 s, then the ledger of what came through (results/soak/ledger.json, report.json). Three

@@ -56,3 +56,22 @@ def supervisor():
             except subprocess.TimeoutExpired:
                 process.kill()  # its children stop by themselves when it disappears
                 process.wait()
+
+
+# Modules whose tests run systems of processes and zenoh sessions against wall-clock waits.
+# `make test` runs the suite on two pytest-xdist workers: these modules share one worker, one
+# test at a time, so two systems never fight each other for the cores while the other worker
+# runs the in-process tests; every other module stays whole on one worker (its module-scoped
+# fixtures are built once).
+SYSTEM_MODULES = frozenset({
+    "test_bus_inprocess", "test_bus_supervisor", "test_chaos", "test_checkpoint",
+    "test_console_browser", "test_faults", "test_fuzz", "test_packaging", "test_recording",
+    "test_security", "test_two_routers",
+})
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        module = item.module.__name__.rsplit(".", 1)[-1]
+        item.add_marker(pytest.mark.xdist_group("systems" if module in SYSTEM_MODULES
+                                                else module))
