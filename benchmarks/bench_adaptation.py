@@ -17,7 +17,11 @@ import numpy as np
 
 from benchmarks.common import Figure
 from cloud_service.evaluation import evaluate, random_jammer
-from cloud_service.jammer_estimation import estimate_jammer, positions_from_features
+from cloud_service.jammer_estimation import (
+    estimate_jammer,
+    positions_from_features,
+    report_shares,
+)
 from cloud_service.online_map_sim import Fleet
 from cloud_service.sinr_mapping import ChangeDetector, OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
@@ -43,6 +47,9 @@ STILL_S = 1800.0  # "30 min of flight with a still jammer"
 LOCALIZATION_SETTINGS = 50
 LOCALIZATION_FLIGHT_S = 10.0
 TRUTH_SPACING_M = 2.0
+# How much of a change the fleet can see within the detection target's 5 s: the most the new
+# jammer lowers the true SINR at any report taken in that time.
+VISIBLE_WITHIN_S = 5.0
 
 
 def run() -> list[Figure]:
@@ -81,6 +88,12 @@ class TruthGrid:
         """The share of the area whose level the jammer of ``setting`` changes."""
         return float((self.levels(setting) != self.levels(None)).mean())
 
+    def sinr_shift_db(self, uploads: MeasurementBatch, setting: JammerSetting) -> float:
+        """The most the jammer of ``setting`` lowers the true SINR at any of ``uploads``."""
+        xy = positions_from_features(self.scenario, uploads.features)
+        jammed = self.radio.evaluate(xy, jammer_params(self.scenario, setting)).sinr_db
+        return float(np.max(self.radio.evaluate(xy).sinr_db - jammed, initial=0.0))
+
 
 def _mapper(scenario: Scenario, now: list[float], seed: int) -> OnlineSinrMapper:
     network, card = load_network(sinr_map_for(scenario), {"kind": "sinr_map"})
@@ -99,6 +112,7 @@ def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
     fleet = Fleet(scenario, UAVS, rng)
     dt = scenario.timing.step_s
     first_map, accuracy_first, accuracy_30, evidence = None, None, None, None
+    shift_db = 0.0
     for step in range(int((WARM_UP_S + AFTER_S) / dt)):
         now[0] = step * dt
         after = now[0] - WARM_UP_S
@@ -108,6 +122,8 @@ def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
                                 now[0], step)
         if evidence is None and after >= 0 and _contradicts(mapper, uploads):
             evidence = after
+        if 0 <= after < VISIBLE_WITHIN_S:
+            shift_db = max(shift_db, truth.sinr_shift_db(uploads, setting))
         mapper.ingest(uploads)
         if mapper.version != version and first_map is None and after >= 0:
             first_map = after + dt
@@ -118,7 +134,7 @@ def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
     mapper.close()
     return {"setting": setting, "detected": detected, "first_map": first_map,
             "accuracy_first": accuracy_first, "accuracy_30": accuracy_30, "evidence": evidence,
-            "accuracy_survey": survey, "moved": truth.moved(setting)}
+            "accuracy_survey": survey, "moved": truth.moved(setting), "shift_db": shift_db}
 
 
 def _contradicts(mapper: OnlineSinrMapper, uploads: MeasurementBatch) -> bool:
@@ -239,6 +255,11 @@ def adaptation_figures(scenario: Scenario) -> list[Figure]:
     # What a change that goes unnoticed changed: a weak jammer moves few levels, near the edges.
     missed = [100 * r["moved"] for t, r in zip(detection, trials, strict=True) if t is None]
     caught = [100 * r["moved"] for t, r in zip(detection, trials, strict=True) if t is not None]
+    # What the fleet could see: the changes detected late shifted the SINR where it flew least.
+    late = [r["shift_db"] for t, r in zip(detection, trials, strict=True)
+            if t is None or t > VISIBLE_WITHIN_S]
+    prompt = [r["shift_db"] for t, r in zip(detection, trials, strict=True)
+              if t is not None and t <= VISIBLE_WITHIN_S]
     first = [r["accuracy_first"] for r in trials if r["accuracy_first"] is not None]
     at_30 = [r["accuracy_30"] for r in trials]
     on_missions, mission_success = _mission_detections(scenario, 0)
@@ -253,6 +274,10 @@ def adaptation_figures(scenario: Scenario) -> list[Figure]:
                max(missed, default=0.0), "%"),
         Figure(f"{name}: levels moved by a change detected, least %",
                min(caught, default=0.0), "%"),
+        Figure(f"{name}: SINR shift at the reports of the first {VISIBLE_WITHIN_S:.0f} s, "
+               f"most of a change detected later (or never), dB", max(late, default=0.0), "dB"),
+        Figure(f"{name}: the same, least of a change detected within {VISIBLE_WITHIN_S:.0f} s, "
+               "dB", min(prompt, default=np.inf), "dB"),
         Figure(f"{name}: first corrected map, median s", m50, "s", 5, lower_is_better=True),
         Figure(f"{name}: first corrected map, p90 s", m90, "s", 10, lower_is_better=True),
         Figure(f"{name}: first map's accuracy vs truth, median %",
@@ -279,6 +304,8 @@ def localization_figures(scenario: Scenario) -> list[Figure]:
     dt = scenario.timing.step_s
     survey, _ = load_network(sinr_map_for(scenario), {"kind": "sinr_map"})
     errors, power_errors, failures = [], [], 0
+    told_errors, told_sds = [], []
+    radio = RadioModel(scenario)
     for k in range(LOCALIZATION_SETTINGS):
         rng = np.random.default_rng(1000 + k)
         setting = random_jammer(scenario, rng)
@@ -288,8 +315,17 @@ def localization_figures(scenario: Scenario) -> list[Figure]:
             fleet.fly()
             batches.append(fleet.uploads(jammer_params(scenario, setting), step * dt, step))
         data = MeasurementBatch.concatenate(batches)
-        estimate = estimate_jammer(scenario, positions_from_features(scenario, data.features),
-                                   data.levels,
+        xy = positions_from_features(scenario, data.features)
+        # What the reports themselves hold: the estimate told the true no-jammer world (the
+        # share of reports at each level at each point) and made whatever its certainty.
+        told = estimate_jammer(
+            scenario, xy, data.levels, no_jammer_levels=report_shares(
+                radio, radio.evaluate(xy).sinr_db, scenario.uav.measurement_noise_db),
+            max_position_sd_m=np.inf, presence_llr=-np.inf)
+        if told is not None and told.present:
+            told_errors.append(float(np.hypot(told.x - setting.x, told.y - setting.y)))
+            told_sds.append(max(told.sd_x_m, told.sd_y_m))
+        estimate = estimate_jammer(scenario, xy, data.levels,
                                    no_jammer_levels=predict_probabilities(survey, data.features))
         if estimate is None or not estimate.present:
             failures += 1
@@ -305,6 +341,10 @@ def localization_figures(scenario: Scenario) -> list[Figure]:
                float(np.median(power_errors)) if power_errors else np.inf, "dB", 2,
                lower_is_better=True),
         Figure(f"{name}: no estimate, of {LOCALIZATION_SETTINGS}", failures, "count"),
+        Figure(f"{name}: told the true no-jammer world, any certainty: error median m",
+               float(np.median(told_errors)) if told_errors else np.inf, "m"),
+        Figure(f"{name}: the same, posterior sd along its least certain axis, median m",
+               float(np.median(told_sds)) if told_sds else np.inf, "m"),
         Figure(f"{scenario.name}: one estimate from {COSTED_REPORTS:,} uniform reports, best of 3",
                _estimate_seconds(scenario, survey), "s", 1, lower_is_better=True),
     ]
