@@ -24,7 +24,7 @@ from cloud_service.sinr_mapping import (
     simulated_measurements,
 )
 from cloud_service.sinr_memory import SinrMemory
-from cloud_service.sinr_training import fit_sinr_map
+from cloud_service.sinr_training import fit_sinr_map, train_sinr_map, warm_up
 from jamnav.cli import main
 from shared.measurements import (
     Measurement,
@@ -362,6 +362,30 @@ def test_reports_the_ideal_model_expects_are_no_evidence_where_the_map_errs(mapp
         changes[vouching] = _types(mapper).count("change_detected")
         mapper.close()
     assert changes == {True: 0, False: 1}
+
+
+def test_the_cloud_warm_up_changes_no_later_fit(mapping_scenario, no_jammer_map):
+    """The cloud fits its survey map for two throwaway steps at start (torch's one-off set-up
+    of a fit, seconds, paid before a change needs a map): torch's global random state is as
+    it was, and a fit after it gives the network a fit without it gives."""
+    network, _ = no_jammer_map
+    xy = np.random.default_rng(4).uniform(-50, 50, (600, 2))
+    features = scenario_features(mapping_scenario, xy)
+    levels = predict_levels(network, features)
+
+    def fitted() -> dict[str, np.ndarray]:
+        return train_sinr_map(features, levels, network.levels, network=network, steps=30,
+                              seed=5).network.tensors
+
+    before = fitted()
+    torch.manual_seed(11)
+    state = torch.random.get_rng_state()
+    warm_up(network)
+    assert torch.equal(torch.random.get_rng_state(), state)
+    after = fitted()
+    assert before.keys() == after.keys()
+    for name in before:
+        np.testing.assert_array_equal(before[name], after[name])
 
 
 def test_background_adaptation_publishes_without_blocking(mapping_scenario, no_jammer_map):
