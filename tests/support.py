@@ -5,8 +5,10 @@ from __future__ import annotations
 import logging
 import socket
 import subprocess
+import sys
 import threading
 import time
+import traceback
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -121,9 +123,10 @@ def running(scenario, tmp_path, *, mode: str, uavs: int, jammer: JammerInfo | No
             if agent.start(stop):
                 agent.run(stop)
 
-        threads = [threading.Thread(target=cloud.run, args=(stop,)),
-                   threading.Thread(target=world.run, args=(stop,))]
-        threads += [threading.Thread(target=fly, args=(agent,)) for agent in agents]
+        threads = [threading.Thread(target=cloud.run, args=(stop,), name="cloud"),
+                   threading.Thread(target=world.run, args=(stop,), name="world")]
+        threads += [threading.Thread(target=fly, args=(agent,), name=f"agent-{agent.uav}")
+                    for agent in agents]
         for thread in threads:
             thread.start()
         yield System(topics, events, world, cloud, agents, sessions, threads)
@@ -134,7 +137,10 @@ def running(scenario, tmp_path, *, mode: str, uavs: int, jammer: JammerInfo | No
         for session in sessions:
             session.close()
         router.close()
-    assert not any(thread.is_alive() for thread in threads)
+    stuck = [thread for thread in threads if thread.is_alive()]
+    assert not stuck, "\n".join(
+        f"{thread.name} still running, at:\n" + "".join(traceback.format_stack(
+            sys._current_frames()[thread.ident])) for thread in stuck)
 
 
 def statuses(session, topics: Topics, timeout: float = 5.0) -> dict[str, ProcessStatus]:
