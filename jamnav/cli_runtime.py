@@ -155,7 +155,7 @@ def cmd_up(args: argparse.Namespace) -> int:
                                                    recorder=args.record is not None))
     endpoint = endpoint_from(args.endpoint)
     agent_endpoint, link_endpoint = _second_router(args, endpoint)
-    web = None if args.no_web else listen.settle(args.web)
+    web_listener, web = (None, None) if args.no_web else listen.open_listener(args.web)
     config = UpConfig(
         endpoint=endpoint, run_dir=run_dir, prefix=args.prefix,
         scenario=args.scenario, uavs=uavs, episodes=args.episodes, duration=args.duration,
@@ -168,7 +168,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         secure=args.secure or args.credentials is not None,
         credentials=Path(args.credentials) if args.credentials else None,
         routers=args.routers, agent_endpoint=agent_endpoint, link_endpoint=link_endpoint,
-        web=web,
+        web=web, web_listener=web_listener,
         record=Path(args.record) if args.record else None,
         command="jamnav " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["up"] else "jamnav up",
     )
@@ -359,7 +359,10 @@ def cmd_console(args: argparse.Namespace) -> int:
                          "takes a token")
     token = None if login is None else listen.token_for(Path(
         args.token_file or Path(args.credentials).parent / listen.TOKEN_FILE))
-    listener, address = listen.open_listener(args.web)
+    if args.listen_fd is None:
+        listener, address = listen.open_listener(args.web)
+    else:
+        listener, address = listen.inherited_listener(args.listen_fd), listen.parse_web(args.web)
     return serve(listener, address, endpoint, topics, scenario, login, token)
 
 
@@ -482,6 +485,8 @@ def register(commands) -> None:
                          help="with --credentials: the token the page and the API demand, "
                               "made there if absent (default: console_token beside the "
                               "credentials file)")
+    # `jamnav up` hands its console the socket it listens on (listen.inherited_listener).
+    console.add_argument("--listen-fd", type=int, default=None, help=argparse.SUPPRESS)
     console.set_defaults(handler=_guarded(cmd_console))
 
     record = commands.add_parser("record", help="record a running system's messages to MCAP")

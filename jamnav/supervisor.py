@@ -101,6 +101,9 @@ class UpConfig:
     durable_outboxes: bool = True  # agents keep their outboxes in run_dir too (else memory)
     record: Path | None = None  # MCAP file of every message (a restarted recorder: FILE.N.mcap)
     web: WebAddress | None = None  # where the console serves its page (None: no console)
+    # The socket listening at ``web``, held for the whole run and handed to each console
+    # started (None: the console binds ``web`` itself).
+    web_listener: socket.socket | None = None
 
 
 @dataclass
@@ -219,7 +222,10 @@ class Supervisor:
         if child.role == "console":
             token = [] if self.credentials_path is None else [
                 "--token-file", str(c.run_dir / TOKEN_FILE)]
-            return python + ["jamnav.cli", "console", *common, "--web", c.web.text, *token]
+            inherited = [] if c.web_listener is None else [
+                "--listen-fd", str(c.web_listener.fileno())]
+            return python + ["jamnav.cli", "console", *common, "--web", c.web.text, *token,
+                             *inherited]
         jammer = ["--no-jammer"] if self.jammer is None else [
             "--jammer", f"{self.jammer.x!r},{self.jammer.y!r},{self.jammer.power_w!r},"
                         f"{self.jammer.height_m!r}"]
@@ -252,10 +258,12 @@ class Supervisor:
     def _launch(self, child: Child) -> None:
         env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONUNBUFFERED="1")
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+        listener = self.config.web_listener
+        handed = (listener.fileno(),) if child.role == "console" and listener else ()
         with child.log_path.open("ab") as log:
             child.process = subprocess.Popen(
                 self._argv(child), stdin=subprocess.DEVNULL, stdout=log, stderr=log, env=env,
-                start_new_session=True)
+                start_new_session=True, pass_fds=handed)
         child.started = time.monotonic()
         self.launched.append({"role": child.role, "id": child.ident, "pid": child.process.pid})
 
@@ -838,12 +846,16 @@ def save_trajectory_figures(report: dict[str, Any], supervisor: Supervisor) -> l
 
 
 def up(config: UpConfig, scenario: Scenario) -> int:
-    check_endpoint_free(config.endpoint)
-    if config.routers > 1:
-        check_endpoint_free(config.agent_endpoint, "--agent-endpoint")
-        check_endpoint_free(config.link_endpoint, "--link-endpoint")
-    supervisor = Supervisor(config, scenario)
-    report = supervisor.run()
+    try:
+        check_endpoint_free(config.endpoint)
+        if config.routers > 1:
+            check_endpoint_free(config.agent_endpoint, "--agent-endpoint")
+            check_endpoint_free(config.link_endpoint, "--link-endpoint")
+        supervisor = Supervisor(config, scenario)
+        report = supervisor.run()
+    finally:
+        if config.web_listener is not None:
+            config.web_listener.close()  # the run's consoles have ended with it
     if config.figures:
         report["figures"] = save_trajectory_figures(report, supervisor)
     path = config.report or config.run_dir / "report.json"

@@ -208,11 +208,23 @@ def test_a_taken_default_port_gives_way_and_a_taken_chosen_one_is_an_error(monke
         with listener:
             assert address.port not in (port, 0) and address.taken_default == port
             assert listener.getsockname()[1] == address.port
-        assert listen.settle(None).taken_default == port
     for bad in ("8470", "127.0.0.1:", "127.0.0.1:70000", ":8470"):
         with pytest.raises(ValueError, match="expected HOST:PORT"):
             listen.parse_web(bad)
     assert listen.parse_web("[::1]:9000").url("abc") == "http://[::1]:9000/?token=abc"
+
+
+def test_a_console_takes_the_listening_socket_it_is_handed():
+    """`jamnav up` holds its console's socket from its checks on and hands it down: a console
+    serves on it, and what is no listening TCP socket is refused."""
+    with held_port() as holder:
+        inherited = listen.inherited_listener(holder.dup().detach())
+        with inherited, socket.create_connection(holder.getsockname(), timeout=5):
+            accepted, _ = inherited.accept()
+            accepted.close()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as datagram:
+        with pytest.raises(ValueError, match="not a listening TCP socket"):
+            listen.inherited_listener(datagram.dup().detach())
 
 
 def test_the_commands_refuse_a_taken_port_with_one_line(capsys, tmp_path):

@@ -1,8 +1,9 @@
 """Where the console listens and who may use it: ``HOST:PORT`` (loopback by default), a free
 port when the default one is taken, and the token a secure system's console demands.
 
-Kept free of the web server's imports: ``jamnav up`` settles the address before it starts
-anything, so that a taken port is a one-line error and not a child that dies.
+Kept free of the web server's imports: ``jamnav up`` opens the console's socket before it
+starts anything, so that a taken port is a one-line error and not a child that dies, and hands
+it to each console it starts.
 """
 
 from __future__ import annotations
@@ -93,12 +94,16 @@ def open_listener(text: str | None) -> tuple[socket.socket, WebAddress]:
     return listener, address
 
 
-def settle(text: str | None) -> WebAddress:
-    """Where a console started later will listen: ``open_listener``'s choice, its socket
-    closed again (the console binds it again as it starts)."""
-    listener, address = open_listener(text)
-    listener.close()
-    return address
+def inherited_listener(fd: int) -> socket.socket:
+    """The listening socket a supervisor opened and handed down as file descriptor ``fd``:
+    held from the checks before anything starts until the run ends, so that no other
+    process can take the port between the check and the console's start, nor between a
+    console and its restarted successor."""
+    listener = socket.socket(fileno=fd)
+    if listener.type != socket.SOCK_STREAM:
+        listener.close()
+        raise ValueError(f"--listen-fd {fd}: not a listening TCP socket")
+    return listener
 
 
 def new_token(path: Path) -> str:
