@@ -199,26 +199,32 @@ def joint_state(
     already chosen and ordered (``Observation.nearest_neighbours``), broadcastable against
     the own batch (the lookahead passes own (N, A) against others (N, 1, K)).
     """
-    to_goal = destination - position
-    goal_distance = np.hypot(to_goal[..., 0], to_goal[..., 1])
+    gx = destination[..., 0] - position[..., 0]
+    gy = destination[..., 1] - position[..., 1]
+    goal_distance = np.hypot(gx, gy)
     batch = goal_distance.shape
     # The frame's +x axis is the unit vector to the goal (any axis at the goal itself).
-    away = goal_distance > 0
-    safe = np.where(away, goal_distance, 1.0)
-    cos = np.where(away, to_goal[..., 0] / safe, 1.0)
-    sin = np.where(away, to_goal[..., 1] / safe, 0.0)
+    at_goal = goal_distance == 0
+    safe = goal_distance.copy()
+    np.copyto(safe, 1.0, where=at_goal)
+    cos, sin = gx / safe, gy / safe
+    np.copyto(cos, 1.0, where=at_goal)
+    np.copyto(sin, 0.0, where=at_goal)
     extras = [column for column in (below_steps, route_distance) if column is not None]
     level_column = len(OWN_FEATURES) + len(OTHER_FEATURES) * observed_uavs
-    size = level_column + 1 + len(extras)
-    out = np.zeros(batch + (size,), dtype=np.float32)
+    # One contiguous plane per feature, turned into rows of features once at the end: on the
+    # lookahead's batch a fifth faster than writing each feature down a column of the rows.
+    planes = np.empty((level_column + 1 + len(extras),) + batch)
     vx, vy = velocity[..., 0], velocity[..., 1]
-    out[..., 0] = vx * cos + vy * sin
-    out[..., 1] = vy * cos - vx * sin
-    out[..., 2] = goal_distance  # destination in the turned frame: (d_d, 0), azimuth 0
-    out[..., 4] = goal_distance
-    out[..., 6] = radius
-    out[..., 7] = max_speed
-    out[..., 8] = wrap_angle(heading - np.arctan2(sin, cos))
+    planes[0] = vx * cos + vy * sin
+    planes[1] = vy * cos - vx * sin
+    planes[2] = goal_distance  # destination in the turned frame: (d_d, 0), azimuth 0
+    planes[3] = 0.0
+    planes[4] = goal_distance
+    planes[5] = 0.0
+    planes[6] = radius
+    planes[7] = max_speed
+    planes[8] = wrap_angle(heading - np.arctan2(sin, cos))
 
     count = others_present.shape[-1]
     if count > observed_uavs:
@@ -226,30 +232,33 @@ def joint_state(
     width = len(OTHER_FEATURES)
     for k in range(observed_uavs):
         column = len(OWN_FEATURES) + k * width
-        block = out[..., column : column + width]
+        block = planes[column : column + width]
         if k >= count:
-            block[..., 0] = -_ABSENT_DISTANCE
-            block[..., 4] = _ABSENT_DISTANCE
-            block[..., 5] = np.pi
+            block[0] = -_ABSENT_DISTANCE
+            block[1:4] = 0.0
+            block[4] = _ABSENT_DISTANCE
+            block[5] = np.pi
             continue
-        present = others_present[..., k]
         rx = others_position[..., k, 0] - position[..., 0]
         ry = others_position[..., k, 1] - position[..., 1]
         ovx, ovy = others_velocity[..., k, 0], others_velocity[..., k, 1]
-        px = np.where(present, rx * cos + ry * sin, -_ABSENT_DISTANCE)
-        py = np.where(present, ry * cos - rx * sin, 0.0)
-        block[..., 0] = px
-        block[..., 1] = py
-        block[..., 2] = np.where(present, ovx * cos + ovy * sin, 0.0)
-        block[..., 3] = np.where(present, ovy * cos - ovx * sin, 0.0)
-        block[..., 4] = np.hypot(px, py)
-        block[..., 5] = np.arctan2(py, px)
-    out[..., level_column] = level
+        px, py = block[0], block[1]
+        px[...] = rx * cos + ry * sin
+        py[...] = ry * cos - rx * sin
+        block[2] = ovx * cos + ovy * sin
+        block[3] = ovy * cos - ovx * sin
+        absent = ~others_present[..., k]
+        if absent.any():
+            np.copyto(px, -_ABSENT_DISTANCE, where=absent)
+            np.copyto(block[1:4], 0.0, where=absent)
+        np.hypot(px, py, out=block[4])
+        np.arctan2(py, px, out=block[5])
+    planes[level_column] = level
     # Extended method: how long the UAV has been disconnected (tells a harmless gap from a
     # fatal one) and how far the destination is along the map's connected route.
     for offset, column in enumerate(extras, start=1):
-        out[..., level_column + offset] = column
-    return out
+        planes[level_column + offset] = column
+    return np.ascontiguousarray(np.moveaxis(planes, 0, -1), dtype=np.float32)
 
 
 def observation_state(
