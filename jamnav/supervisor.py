@@ -222,8 +222,7 @@ class Supervisor:
         if child.role == "console":
             token = [] if self.credentials_path is None else [
                 "--token-file", str(c.run_dir / TOKEN_FILE)]
-            inherited = [] if c.web_listener is None else [
-                "--listen-fd", str(c.web_listener.fileno())]
+            inherited = [arg for fd in self._handed_fds(child) for arg in ("--listen-fd", str(fd))]
             return python + ["jamnav.cli", "console", *common, "--web", c.web.text, *token,
                              *inherited]
         jammer = ["--no-jammer"] if self.jammer is None else [
@@ -255,15 +254,18 @@ class Supervisor:
             argv += ["--duration", str(max(c.duration - elapsed, 0.1))]
         return argv
 
+    def _handed_fds(self, child: Child) -> tuple[int, ...]:
+        """The descriptors ``child`` inherits: a console, the run's listening socket."""
+        listener = self.config.web_listener
+        return (listener.fileno(),) if child.role == "console" and listener is not None else ()
+
     def _launch(self, child: Child) -> None:
         env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONUNBUFFERED="1")
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
-        listener = self.config.web_listener
-        handed = (listener.fileno(),) if child.role == "console" and listener else ()
         with child.log_path.open("ab") as log:
             child.process = subprocess.Popen(
                 self._argv(child), stdin=subprocess.DEVNULL, stdout=log, stderr=log, env=env,
-                start_new_session=True, pass_fds=handed)
+                start_new_session=True, pass_fds=self._handed_fds(child))
         child.started = time.monotonic()
         self.launched.append({"role": child.role, "id": child.ident, "pid": child.process.pid})
 
