@@ -46,13 +46,13 @@ FLEET, FLEET_HZ, EPISODE_STEPS = 50, 20.0, 60
 WARM_S, WINDOW_S = 5.0, 20.0
 
 
-def _free_port() -> int:
+def free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         return probe.getsockname()[1]
 
 
-def _console_url(process: subprocess.Popen) -> str:
+def console_url(process: subprocess.Popen) -> str:
     """The URL a starting ``jamnav up`` or ``jamnav console`` prints; its other lines are
     drained on a thread from then on."""
     for line in process.stderr:
@@ -118,13 +118,13 @@ def _lockstep(run_dir: Path, browser=None) -> tuple[float, dict[str, float]]:
     ``browser`` if one is given (else with ``--no-web``)."""
     argv = [sys.executable, "-m", "jamnav.cli", "up", "--lockstep", "--uavs", str(UAVS),
             "--episodes", EPISODES, "--map", "perfect", "--no-figures", "--endpoint",
-            f"tcp/127.0.0.1:{_free_port()}", "--run-dir", str(run_dir)]
-    argv += ["--no-web"] if browser is None else ["--web", f"127.0.0.1:{_free_port()}"]
+            f"tcp/127.0.0.1:{free_port()}", "--run-dir", str(run_dir)]
+    argv += ["--no-web"] if browser is None else ["--web", f"127.0.0.1:{free_port()}"]
     process = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.DEVNULL, text=True,
                                stderr=subprocess.DEVNULL if browser is None else subprocess.PIPE)
     page = None if browser is None else browser.new_page()
     if page is not None:
-        page.goto(_console_url(process))
+        page.goto(console_url(process))
     cpu = _cpu_during(process)
     if page is not None:
         page.close()
@@ -166,18 +166,18 @@ def _fly_synthetic_fleet(endpoint: str, stop: threading.Event) -> None:
 
 def _fifty_uavs(playwright) -> tuple[float, float]:
     """(updates the page received per second, the console's CPU in % of a core)."""
-    endpoint, stop = f"tcp/127.0.0.1:{_free_port()}", threading.Event()
+    endpoint, stop = f"tcp/127.0.0.1:{free_port()}", threading.Event()
     with bus.open_session("router", endpoint):
         fleet = threading.Thread(target=_fly_synthetic_fleet, args=(endpoint, stop))
         fleet.start()
         console = subprocess.Popen(
             [sys.executable, "-m", "jamnav.cli", "console", "--endpoint", endpoint, "--web",
-             f"127.0.0.1:{_free_port()}"], cwd=ROOT, text=True, stdout=subprocess.DEVNULL,
+             f"127.0.0.1:{free_port()}"], cwd=ROOT, text=True, stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE)
         try:
             browser = chromium.launch(playwright)
             page = browser.new_page()
-            page.goto(_console_url(console))
+            page.goto(console_url(console))
             page.wait_for_function("window.consoleStats.frames > 0", timeout=60_000)
             time.sleep(WARM_S)
             seen = "[window.consoleStats.frames, window.consoleStats.lastAt]"

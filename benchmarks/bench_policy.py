@@ -1,18 +1,22 @@
 """Lookahead decisions/s: full evaluation of every permissible action for 256 UAVs at once
 (64 environments x 4 UAVs), true map with a jammer, value network on one CPU thread; for the
 paper's method (one step), and for the shipped extended network (route distances, safe cells,
-and the scenario's deeper search for UAVs whose one-step choice is a trap). And what an
-agent's first decision of an episode adds: the route field to its new destination."""
+and the scenario's deeper search for UAVs whose one-step choice is a trap). One UAV's decision
+alone, as an agent makes it: its time, and the Python and numpy calls it makes, whose fixed
+cost sets a floor under it. And what an agent's first decision of an episode adds: the route
+field to its new destination."""
 
 from __future__ import annotations
 
+import sys
 import time
+from collections.abc import Callable
 
 import numpy as np
 
 from benchmarks.common import Figure, best_rate
 from cloud_service.evaluation import load_policy
-from cloud_service.rollout import LookaheadController, perfect_maps
+from cloud_service.rollout import LookaheadController, RasterMaps, fleet_observation, perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
 from shared.features import joint_state_size
 from shared.paper import TABLE_I_JAMMERS, jammer_params
@@ -43,9 +47,56 @@ def run() -> list[Figure]:
         rate = best_rate(decide, repeats=3, min_seconds=1.0)
         figures.append(Figure(f"lookahead decisions/s, {name} (256 UAVs x all actions, "
                               "batched)", rate, "decisions/s", 20_000))
+    figures += single_uav_figures(policies["extended"], world, perfect_maps(scenario))
     figures.append(Figure("route field to one new destination, as an agent sweeps it, ms",
                           single_route_field_ms(scenario), "ms", lower_is_better=True))
     return figures
+
+
+SINGLE_UAV_REPEATS = 20
+
+
+def single_uav_figures(policy: LookaheadPolicy, world: VectorWorld,
+                       maps: RasterMaps) -> list[Figure]:
+    """Each of the world's UAVs decided alone, as its agent would: the median and 99th
+    percentile of the time of one decision (the mean of SINGLE_UAV_REPEATS in a warm loop),
+    and the fewest and most function calls (Python's and numpy's) a decision makes, counted
+    by the interpreter's profiling hook."""
+    observation = fleet_observation(world)
+    radio_map = maps(world, np.arange(len(observation)))
+    alone = [(observation.select(row), radio_map.for_rows(row))
+             for row in np.arange(len(observation))[:, None]]
+    times = []
+    for case in alone:
+        policy.decide(*case)
+        start = time.perf_counter()
+        for _ in range(SINGLE_UAV_REPEATS):
+            policy.decide(*case)
+        times.append(1e6 * (time.perf_counter() - start) / SINGLE_UAV_REPEATS)
+    calls = [_calls(lambda case=case: policy.decide(*case)) for case in alone]
+    return [
+        Figure("one UAV's decision alone (each of the 256 above), median, us",
+               float(np.median(times)), "us", 500, lower_is_better=True),
+        Figure("  99th percentile, us", float(np.percentile(times, 99)), "us", 500,
+               lower_is_better=True),
+        Figure("  function calls of a decision, fewest (one step)", min(calls), "calls"),
+        Figure("  most (the deeper search)", max(calls), "calls"),
+    ]
+
+
+def _calls(work: Callable[[], object]) -> int:
+    count = 0
+
+    def hook(frame, event, arg) -> None:
+        nonlocal count
+        count += event in ("call", "c_call")
+
+    sys.setprofile(hook)
+    try:
+        work()
+    finally:
+        sys.setprofile(None)
+    return count
 
 
 ROUTE_DESTINATIONS = 200
