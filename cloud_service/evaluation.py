@@ -47,6 +47,7 @@ from shared.shipped import NoSurveyMapError, sinr_map_for, value_net_for
 from world_sim.core import VectorWorld
 
 METHODS = ("proposed", "perfect", "outdated", "orca", "straight")
+LOOKAHEAD_METHODS = ("proposed", "perfect", "outdated")  # the rest fly without a value network
 _SWAP_STREAM = 0x5A4150  # a stream of its own for the swapped jammers of a run
 
 
@@ -191,7 +192,7 @@ def evaluate(
     schedule = swapping_jammers(scenario, jammer, swap_every, seed)
     online = None
     with tempfile.TemporaryDirectory(prefix="jamnav-eval-") as scratch:
-        if method in ("proposed", "perfect", "outdated"):
+        if method in LOOKAHEAD_METHODS:
             policy = load_policy(scenario, value_net_for(
                 value_net, scenario.area.square_metres, uavs or scenario.missions.uav_count))
             if method == "proposed":

@@ -11,6 +11,7 @@ timeline.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -118,8 +119,10 @@ def simulate_online_map(
     test_points: int = 5000,
     detector: ChangeDetector | None = None,
     retrain: RetrainConfig | None = None,
+    on_step: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
-    """Fly the fleet for ``duration`` simulated seconds through a synchronous mapper.
+    """Fly the fleet for ``duration`` simulated seconds through a synchronous mapper;
+    ``on_step(steps done, steps)`` before the first step and after each.
 
     Every step the true accuracy of the network in service is measured on ``test_points``
     fixed uniform positions under the jammer of the moment. Returns the timeline (JSON-ready).
@@ -143,7 +146,10 @@ def simulate_online_map(
     fleet = Fleet(scenario, uavs, rng)
     times, accuracies, versions, monitor = [], [], [], []
     predicted, predicted_version = None, None
-    for step in range(int(round(duration / dt))):
+    steps = int(round(duration / dt))
+    if on_step is not None:
+        on_step(0, steps)
+    for step in range(steps):
         now[0] = step * dt
         setting = schedule.at(now[0])
         fleet.fly()
@@ -155,6 +161,8 @@ def simulate_online_map(
         times.append(now[0])
         accuracies.append(float((predicted == truth[setting]).mean()))
         versions.append(mapper.version)
+        if on_step is not None:
+            on_step(step + 1, steps)
     memory.close()
     return {
         "scenario": scenario.name,

@@ -4,8 +4,8 @@ with one line before any work starts, never found deep inside as a traceback."""
 from __future__ import annotations
 
 import math
-import os
 import sys
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -50,14 +50,39 @@ def output_path(
         for target in (path, *(path.with_suffix(suffix) for suffix in beside)):
             if target.is_dir():
                 raise UsageError(f"{option} {text}: {target} is a directory")
+            if target.is_symlink() and not target.exists():
+                raise UsageError(f"{option} {text}: {target} is a link to nothing")
     existing = path if directory else path.parent
     while not existing.exists() and not existing.is_symlink():  # a dangling link stops too
         existing = existing.parent
     if not existing.is_dir():
         raise UsageError(f"{option} {text}: {existing} is not a directory")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise UsageError(f"{option} {text}: {existing} is not writable")
+    # Tried, not asked (os.access): root passes every permission check, yet cannot write
+    # into /proc or /sys or a read-only mount.
+    try:
+        tempfile.TemporaryFile(dir=existing).close()
+    except OSError as exc:
+        raise UsageError(f"{option} {text}: cannot write in {existing} "
+                         f"({exc.strerror or exc})") from None
     return path
+
+
+# Episodes whose missions a fleet check places: placement draws at random and gives up after
+# a bounded number of draws, so a fleet near what the area holds fails on some episodes only.
+FLEET_CHECK_EPISODES = 8
+
+
+def check_fleet(option: str, uavs: int, scenario, seed: int = 0) -> None:
+    """Refuse a fleet whose missions the scenario's area cannot hold (placed for the run's
+    first episodes as the world will place them), instead of failing at the first reset."""
+    from world_sim.core import MissionSampler, episode_seed
+
+    sampler = MissionSampler(scenario)
+    for episode in range(FLEET_CHECK_EPISODES):
+        try:
+            sampler.sample(episode_seed(seed, episode), uavs)
+        except ValueError as exc:
+            raise UsageError(f"{option} {uavs}: {exc} (scenario {scenario.name})") from None
 
 
 def sinr_map_argument(option: str, path: str, scenario):

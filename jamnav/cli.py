@@ -19,6 +19,7 @@ import numpy as np
 from jamnav.arguments import (
     SEED_MAX,
     UsageError,
+    check_fleet,
     check_range,
     output_path,
     sinr_map_argument,
@@ -97,28 +98,31 @@ def _add_scenario(parser: argparse.ArgumentParser) -> None:
 def _add_jammer(parser: argparse.ArgumentParser) -> None:
     group = parser.add_mutually_exclusive_group()
     group.add_argument(
-        "--jammer", metavar="X,Y,P",
-        help="jammer position (m) and nominal power (W); keeps the scenario's jammer height",
+        "--jammer", metavar="X,Y,P[,H]",
+        help="jammer position (m), nominal power (W) and height (m, default: the scenario's)",
     )
     group.add_argument("--no-jammer", action="store_true", help="no jammer at all")
 
 
 def scenario_with_jammer(args: argparse.Namespace) -> Scenario:
     """The scenario named by --scenario with --jammer/--no-jammer applied and validated."""
+    from shared.messages import JammerInfo
+
     scenario = _load_scenario(args)
     if getattr(args, "no_jammer", False):
         return scenario.without_jammer()
-    if getattr(args, "jammer", None):
-        x, y, power = _numbers(args.jammer, 3, "--jammer")
-        if power < 0:
-            raise UsageError(f"--jammer {args.jammer!r}: power must be >= 0 W")
-        if not scenario.area.contains(x, y):
+    if getattr(args, "jammer", None) is not None:
+        try:
+            jammer = JammerInfo.parse(args.jammer, scenario.jammer.height_m)
+        except ValueError as exc:
+            raise UsageError(f"--{exc}") from None
+        if not scenario.area.contains(jammer.x, jammer.y):
             area = scenario.area
             raise UsageError(
                 f"--jammer {args.jammer!r}: position outside the area "
                 f"[{area.x_min:g}, {area.x_max:g}] x [{area.y_min:g}, {area.y_max:g}]"
             )
-        return scenario.with_jammer(x, y, power)
+        return scenario.with_jammer(jammer.x, jammer.y, jammer.power_w, jammer.height_m)
     return scenario
 
 
@@ -231,7 +235,7 @@ def cmd_map(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     import torch
 
-    from cloud_service.evaluation import EvaluationError, evaluate
+    from cloud_service.evaluation import LOOKAHEAD_METHODS, EvaluationError, evaluate
     from jamnav.progress import ProgressBar
     from shared.paper import JammerSetting
 
@@ -241,10 +245,17 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.swap_every is not None:
         check_range("--swap-every", args.swap_every, 1)
     scenario = scenario_with_jammer(args)
+    check_fleet("--uavs", args.uavs or scenario.missions.uav_count, scenario, args.seed)
     jammer = RadioModel.jammer_of(scenario)
     setting = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
-    if args.sinr_map and args.method == "proposed":
+    # Options a method would not read are refused, not ignored: the user meant something.
+    if args.sinr_map is not None:
+        if args.method != "proposed":
+            raise UsageError(f"--sinr-map is the proposed method's initial map; --method "
+                             f"{args.method} does not read one")
         survey_map_argument("--sinr-map", args.sinr_map, scenario)
+    if args.model is not None and args.method not in LOOKAHEAD_METHODS:
+        raise UsageError(f"--model: --method {args.method} flies without a value network")
     torch.set_num_threads(1)
     bar = ProgressBar(f"eval {args.method}", args.episodes)
     finished = 0
@@ -289,6 +300,8 @@ def cmd_table(args: argparse.Namespace) -> int:
     out = output_path("--out", args.out, directory=True)
     torch.set_num_threads(1)
     scenario = _load_scenario(args)
+    check_fleet("the scenario's missions.uav_count", scenario.missions.uav_count, scenario,
+                args.seed)
     nets = {"paper": value_net_path(args.model),
             "extended": _value_net(args.extended_model, scenario)}
     for option, path in zip(("--model", "--extended-model"), nets.values(), strict=True):
@@ -317,6 +330,8 @@ def cmd_table(args: argparse.Namespace) -> int:
 
 def _check_train_log(log: Path) -> None:
     """The columns Fig. 2a plots, read as plot_reward_curve reads them."""
+    if log.is_dir():
+        raise UsageError(f"--train-log {log}: a directory, not a training log")
     if not log.is_file():
         raise UsageError(f"--train-log {log}: no such file (run jamnav train first)")
     try:
@@ -324,8 +339,8 @@ def _check_train_log(log: Path) -> None:
             columns = handle.readline().strip().split(",")
         missing = [name for name in ("episode", "mean_return", "straight_bound")
                    if name not in columns]
-        if not missing:
-            np.genfromtxt(log, delimiter=",", names=True)  # rows cut short by a crash
+        rows = 0 if missing else np.atleast_1d(  # and rows cut short by a crash are refused
+            np.genfromtxt(log, delimiter=",", names=True)).size
     except OSError as exc:
         raise UsageError(f"--train-log {log}: {exc.strerror}") from None
     except ValueError:  # UnicodeDecodeError is one too
@@ -333,6 +348,8 @@ def _check_train_log(log: Path) -> None:
     if missing:
         raise UsageError(f"--train-log {log}: not a training log (no column "
                          f"{', '.join(missing)})")
+    if rows == 0:
+        raise UsageError(f"--train-log {log}: no episodes logged yet")
 
 
 def cmd_figures(args: argparse.Namespace) -> int:
@@ -493,6 +510,9 @@ def cmd_fit_sinr(args: argparse.Namespace) -> int:
     return 0
 
 
+MAX_ONLINE_PERIOD_S = 3600.0
+
+
 def cmd_online_map(args: argparse.Namespace) -> int:
     from cloud_service.online_map_sim import (
         DEFAULT_UAVS,
@@ -500,6 +520,7 @@ def cmd_online_map(args: argparse.Namespace) -> int:
         save_online_map_figure,
         simulate_online_map,
     )
+    from jamnav.progress import ProgressBar
 
     _one_torch_thread()
     scenario = _load_scenario(args)
@@ -508,16 +529,25 @@ def cmd_online_map(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {args.out}: the figure is written as PNG; name it *.png")
     output_path("--out", args.out, beside=(".json",))  # the timeline goes beside the figure
     uavs = DEFAULT_UAVS if args.uavs is None else args.uavs
-    check_range("--uavs", uavs, 1, 10_000)
-    check_range("--period", args.period, 0, above=True)
+    check_range("--uavs", uavs, 1, MAX_UAVS)
+    # A setting must last steps enough to be seen at all; a day of flight is a figure no
+    # one waits for.
+    check_range("--period", args.period, 2 * scenario.timing.step_s, MAX_ONLINE_PERIOD_S)
     check_range("--seed", args.seed, 0, SEED_MAX)
     network, card = sinr_map_argument("--model", args.model, scenario)
     if not isinstance(card.get("accuracy"), int | float):
         raise UsageError(f"--model {args.model}: its card states no accuracy")
     schedule = Schedule.table_i(first_change=args.period / 2, period=args.period)
+    bar: ProgressBar | None = None
+
+    def on_step(done: int, steps: int) -> None:
+        nonlocal bar
+        bar = bar or ProgressBar("online-map", steps)
+        bar.update(done)
+
     timeline = simulate_online_map(scenario, network, float(card["accuracy"]), schedule,
                                    schedule.starts[-1] + args.period, uavs=uavs,
-                                   seed=args.seed)
+                                   seed=args.seed, on_step=on_step)
     save_online_map_figure(timeline, out)
     published = [e for e in timeline["events"] if e["type"] == "sinr_weights_published"]
     print(f"wrote {out} and {out.with_suffix('.json')} "
@@ -591,17 +621,23 @@ def build_parser() -> argparse.ArgumentParser:
     coverage = commands.add_parser("map", help="coverage map as in the paper's Fig. 3")
     _add_scenario(coverage)
     _add_jammer(coverage)
-    coverage.add_argument("--out", required=True, metavar="FILE.png")
-    coverage.add_argument("--resolution", type=int, default=301, help="grid points per side")
+    coverage.add_argument("--out", required=True, metavar="FILE.png", help="the figure (PNG)")
+    coverage.add_argument("--resolution", type=int, default=301,
+                          help="grid points per side, 20 to 2000 (default 301)")
     coverage.set_defaults(handler=cmd_map)
 
     evaluation = commands.add_parser("eval", help="fly seeded episodes in-process and score them")
     _add_scenario(evaluation)
     _add_jammer(evaluation)
-    evaluation.add_argument("--method", choices=EVAL_METHODS, default="proposed")
-    evaluation.add_argument("--episodes", type=int, default=200)
-    evaluation.add_argument("--uavs", type=int, default=None, help="UAVs per episode")
-    evaluation.add_argument("--seed", type=int, default=0)
+    evaluation.add_argument("--method", choices=EVAL_METHODS, default="proposed",
+                            help="maps the UAVs fly on: proposed (the online map), perfect "
+                                 "(the true one), outdated (the no-jammer one); or orca or "
+                                 "straight, which fly without one (default: proposed)")
+    evaluation.add_argument("--episodes", type=int, default=200, help="default 200")
+    evaluation.add_argument("--uavs", type=int, default=None,
+                            help="UAVs per episode (default: the scenario's; at most as many "
+                                 "as its area holds missions for)")
+    evaluation.add_argument("--seed", type=int, default=0, help="default 0")
     evaluation.add_argument("--model", default=None, help=VALUE_NET_HELP)
     evaluation.add_argument("--sinr-map", default=None,
                             help="initial SINR map of the proposed method (default: the "
@@ -616,9 +652,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     table = commands.add_parser("table", help="Table I: 4 jammer settings x 3 methods")
     _add_scenario(table)
-    table.add_argument("--episodes", type=int, default=200, help="episodes per cell")
-    table.add_argument("--seed", type=int, default=0)
-    table.add_argument("--out", default="results", metavar="DIR")
+    table.add_argument("--episodes", type=int, default=200,
+                       help="episodes per cell (default 200)")
+    table.add_argument("--seed", type=int, default=0, help="default 0")
+    table.add_argument("--out", default="results", metavar="DIR",
+                       help="where table1.md and table1.csv go (default: results, the shipped "
+                            "ones)")
     table.add_argument("--model", default="paper",
                        help="the paper-method column's value network (a name or a path)")
     table.add_argument("--extended-model", default=None,
@@ -628,8 +667,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     figures = commands.add_parser("figures", help="the paper's Fig. 2a, 2b and 3 from real runs")
     _add_scenario(figures)
-    figures.add_argument("--out", default="results", metavar="DIR")
-    figures.add_argument("--seed", type=int, default=0)
+    figures.add_argument("--out", default="results", metavar="DIR",
+                         help="where the PNGs go (default: results, the shipped ones)")
+    figures.add_argument("--seed", type=int, default=0, help="default 0")
     figures.add_argument("--train-log", default=str(VALUE_NET.with_name("train_log.csv")),
                          help="training log for Fig. 2a (default: the shipped model's)")
     figures.add_argument("--model", default=None,
@@ -671,7 +711,8 @@ def build_parser() -> argparse.ArgumentParser:
     online.add_argument("--uavs", type=int, default=None,
                         help="UAVs reporting along their paths (default 20)")
     online.add_argument("--period", type=float, default=120.0,
-                        help="simulated seconds per jammer setting")
+                        help="simulated seconds per jammer setting (default 120; from two "
+                             f"steps to {MAX_ONLINE_PERIOD_S:g})")
     online.add_argument("--seed", type=int, default=0)
     online.add_argument("--out", required=True, metavar="FILE.png")
     online.set_defaults(handler=cmd_online_map)
@@ -684,7 +725,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help=f"its router (default ${ENDPOINT_ENV} or {DEFAULT_ENDPOINT})")
     soak.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix of the system")
     soak.add_argument("--duration", type=float, required=True, metavar="SEC",
-                      help="seconds of flight; the last 20 s without faults")
+                      help="seconds of flight, the last 20 s without faults: at least 20 s "
+                           "more than --interval's MAX")
     soak.add_argument("--interval", default="10,30", metavar="MIN,MAX",
                       help="seconds between faults, drawn uniformly (default 10,30)")
     soak.add_argument("--freeze", default="2,6", metavar="MIN,MAX",

@@ -22,6 +22,7 @@ from pathlib import Path
 from jamnav.arguments import (
     SEED_MAX,
     UsageError,
+    check_fleet,
     check_range,
     output_path,
     survey_map_argument,
@@ -126,6 +127,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     check_range("--uavs", uavs, 1, MAX_UAVS)
     check_range("--episodes", args.episodes, 1)
     check_range("--seed", args.seed, 0, SEED_MAX)
+    check_fleet("--uavs", uavs, scenario, args.seed)
     for name in ("duration", "rate", "deadline", "swap_jammer_at"):
         check_range(f"--{name.replace('_', '-')}", getattr(args, name), 0, above=True)
     if args.rate is not None and not args.realtime:
@@ -148,7 +150,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     if args.report:
         output_path("--report", args.report)
     if args.record:
-        output_path("--record", args.record)
+        _new_recording_of_up(args.record)
     Topics(args.prefix)  # refuses a malformed prefix before anything starts
     if args.credentials is not None:  # refuses a file without every role's login, too
         access.load(args.credentials, access.roles(uavs, linked=args.routers > 1,
@@ -301,18 +303,48 @@ def _describe_agents(agents: list[str], statuses: dict) -> str:
 
 
 # -- record and replay ---------------------------------------------------------------------------
+SPEED_RANGE = (0.01, 1000)  # of a replay: beyond it, hours of silence or no pace at all
+
+
+def _new_recording(option: str, text: str) -> Path:
+    """``output_path`` for a recording, which is never written over: a file there (or a link
+    to one) is refused now."""
+    path = output_path(option, text)
+    if path.exists():
+        link = " (a link)" if path.is_symlink() else ""
+        raise UsageError(f"{option} {text}: exists{link}; choose another name or remove it")
+    return path
+
+
+def _new_recording_of_up(text: str) -> Path:
+    """``_new_recording`` for ``jamnav up --record``, whose restarted recorder writes beside
+    it (``supervisor.recording_path``): such a file left by an earlier run is refused now,
+    not by the recorder in the middle of the run."""
+    from jamnav.supervisor import restarted_recordings
+
+    path = _new_recording("--record", text)
+    if earlier := restarted_recordings(path):
+        raise UsageError(f"--record {text}: {earlier[0]} exists, where a restarted recorder "
+                         "would write; choose another name or remove it")
+    return path
+
+
 def cmd_record(args: argparse.Namespace) -> int:
     from jamnav.recording import RECORDER_NICENESS, record
     from shared import access, bus
 
     check_range("--duration", args.duration, 0, above=True)
-    out = output_path("--out", args.out)
+    out = _new_recording("--out", args.out)
     topics = Topics(args.prefix)
     endpoint = endpoint_from(args.endpoint)
     login = access.login_for(args.credentials, access.RECORDER)
     log = bus.setup_logging("recorder")
     stop = threading.Event()
     bus.stop_on_signals(stop)
+    # The long wait is for `jamnav up`, which restarts a recorder that died, maybe while its
+    # router restarts too; by hand, say what the silence is.
+    log.info("connecting to the router at %s (giving up after %g s)", endpoint,
+             bus.CONNECT_TIMEOUT_MS / 1000)
     with bus.open_session("client", endpoint, login=login) as session:
         # Linux sets it per thread: this one, which writes, yields; zenoh's, which receive
         # and only queue, keep up.
@@ -329,7 +361,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from jamnav.recording import Recording, replay
     from shared import bus
 
-    check_range("--speed", args.speed, 0, above=True)
+    check_range("--speed", args.speed, *SPEED_RANGE)
     if args.prefix is not None:
         Topics(args.prefix)
     endpoint = endpoint_from(args.endpoint)
@@ -416,8 +448,10 @@ def register(commands) -> None:
     ``jamnav``'s sub-parsers."""
     up = commands.add_parser("up", help="run the system: router, world, cloud, one agent per UAV")
     add_bus_arguments(up)
-    up.add_argument("--scenario", default=None, metavar="NAME|PATH")
-    up.add_argument("--uavs", type=int, default=None, help="UAVs (one agent process each)")
+    up.add_argument("--scenario", default=None, metavar="NAME|PATH",
+                    help="scenario name under scenarios/ or a TOML file (default: icc2021)")
+    up.add_argument("--uavs", type=int, default=None,
+                    help="UAVs, one agent process each (default: the scenario's)")
     length = up.add_mutually_exclusive_group()
     length.add_argument("--episodes", type=int, default=None, help="stop after K episodes")
     length.add_argument("--duration", type=float, default=None, metavar="SEC",
@@ -427,19 +461,20 @@ def register(commands) -> None:
                        help="each step waits for every agent (default; deterministic)")
     clock.add_argument("--realtime", action="store_true", help="steps at a fixed rate")
     up.add_argument("--rate", type=float, default=None,
-                    help=f"realtime steps per second (default {DEFAULT_RATE:g})")
+                    help=f"--realtime: steps per second (default {DEFAULT_RATE:g})")
     up.add_argument("--deadline", type=float, default=2.0,
                     help="lockstep: seconds a step waits for the actions")
     up.add_argument("--map", choices=("online", "perfect", "outdated"), default="online",
                     help="the agents' SINR map: learned online, true, or without the jammer")
     jam = up.add_mutually_exclusive_group()
-    jam.add_argument("--jammer", metavar="X,Y,P", help="initial jammer (default: scenario's)")
-    jam.add_argument("--no-jammer", action="store_true")
+    jam.add_argument("--jammer", metavar="X,Y,P[,H]",
+                     help="initial jammer (default: the scenario's)")
+    jam.add_argument("--no-jammer", action="store_true", help="start without a jammer")
     up.add_argument("--swap-jammer-at", type=float, default=None, metavar="SEC",
                     help="move the jammer over the control topic SEC seconds into the flight")
     up.add_argument("--swap-to", default=None, metavar="X,Y,P|off",
                     help=f"where --swap-jammer-at moves it (default {DEFAULT_SWAP_TO})")
-    up.add_argument("--seed", type=int, default=0)
+    up.add_argument("--seed", type=int, default=0, help="of the episodes (default 0)")
     up.add_argument("--model", default=None, metavar="NAME|PATH",
                     help=f"the {VALUE_NET_HELP} the cloud serves")
     up.add_argument("--sinr-map", default=None, metavar="PATH",
@@ -477,7 +512,9 @@ def register(commands) -> None:
     console = commands.add_parser("console", help="the operator's console in a browser, "
                                                   "against a running system")
     add_bus_arguments(console)
-    console.add_argument("--scenario", default=None, metavar="NAME|PATH")
+    console.add_argument("--scenario", default=None, metavar="NAME|PATH",
+                         help="the running system's scenario, for the true map (default: "
+                              "icc2021)")
     console.add_argument("--web", default=None, metavar="HOST:PORT",
                          help="where to serve the page (default 127.0.0.1:8470, or a free "
                               "port if that one is taken)")
@@ -504,7 +541,8 @@ def register(commands) -> None:
     replay.add_argument("--prefix", default=None,
                         help="publish under this prefix (default: the recorded one)")
     replay.add_argument("--speed", type=float, default=1.0,
-                        help="times the recorded pace (default 1)")
+                        help=f"times the recorded pace, {SPEED_RANGE[0]:g} to "
+                             f"{SPEED_RANGE[1]:g} (default 1)")
     replay.set_defaults(handler=_guarded(cmd_replay))
 
     jammer = commands.add_parser("jammer", help="move, switch off or show the running jammer")
@@ -521,7 +559,7 @@ def register(commands) -> None:
 
     status = commands.add_parser("status", help="live processes, weight versions, step")
     add_bus_arguments(status)
-    status.add_argument("--json", action="store_true")
+    status.add_argument("--json", action="store_true", help="print JSON")
     status.set_defaults(handler=_guarded(cmd_status))
 
     router = commands.add_parser("router", help="a zenoh router (what `jamnav up` starts)")

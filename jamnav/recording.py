@@ -27,13 +27,14 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, get_args
+from typing import Any, BinaryIO, get_args
 
 import zenoh
 import zstandard
 from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.writer import Writer
+from mcap.writer import MCAP0_MAGIC, Writer
 
 from shared import access, bus
 from shared.messages import (
@@ -126,7 +127,12 @@ class RecordingWriter:
 
     def __init__(self, path: Path, prefix: str):
         path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = path.open("wb")
+        try:
+            # Never over an earlier recording: the command line refuses one, and "x" also
+            # refuses one made since (and a link, which O_EXCL does not follow).
+            self._file = path.open("xb")
+        except OSError as exc:
+            raise RecordingError(f"recording {path}: cannot create it: {exc.strerror}") from None
         self._writer = Writer(self._file)
         self._writer.start(profile="", library="jamnav")
         self._writer.add_metadata(METADATA, {"prefix": prefix})
@@ -234,9 +240,33 @@ class Recorded:
     payload: bytes  # the msgpack bytes as they were put
 
 
-# What the mcap reader raises on a file that is not MCAP, is cut short or damaged.
+# What the mcap reader raises on a file that is not MCAP, is cut short or damaged (OSError:
+# it seeks to the footer's place before the end, which is before the start of a tiny file).
 _UNREADABLE = (McapError, struct.error, EOFError, ValueError, KeyError, IndexError,
-               zstandard.ZstdError)
+               zstandard.ZstdError, OSError)
+
+_RECORD_HEAD = struct.Struct("<BQ")  # an MCAP record's opcode and the length of its content
+
+
+def _whole_records_end(stream: BinaryIO, size: int) -> tuple[int, bool] | None:
+    """Where the last whole record of an MCAP file of ``size`` bytes ends, and whether the
+    file ends as a complete one does (footer, then magic); None for a file that does not
+    start as MCAP. Only the records' heads are read, seeking past their content, so a file of
+    any size is scanned at once."""
+    stream.seek(0)
+    if stream.read(len(MCAP0_MAGIC)) != MCAP0_MAGIC:
+        return None
+    end = len(MCAP0_MAGIC)
+    while end + _RECORD_HEAD.size <= size:
+        stream.seek(end)
+        opcode, length = _RECORD_HEAD.unpack(stream.read(_RECORD_HEAD.size))
+        if length > size - end - _RECORD_HEAD.size:
+            break
+        end += _RECORD_HEAD.size + length
+        if opcode == Opcode.FOOTER:
+            stream.seek(end)
+            return end, stream.read(len(MCAP0_MAGIC)) == MCAP0_MAGIC
+    return end, False
 
 
 class Recording:
@@ -271,8 +301,19 @@ class Recording:
         return found[METADATA]["prefix"], verbatim
 
     def _error(self, exc: Exception) -> RecordingError:
-        return RecordingError(f"recording {self.path}: not a complete MCAP file "
-                              f"({' '.join(str(exc).split())[:160] or type(exc).__name__})")
+        """What the reader's ``exc`` means for the user: the reader only sees that the
+        summary at the end, or a record it points to, does not parse."""
+        size = os.fstat(self._file.fileno()).st_size
+        scanned = _whole_records_end(self._file, size)
+        if scanned is None:
+            return RecordingError(f"recording {self.path}: "
+                                  + ("not an MCAP file" if size else "an empty file"))
+        end, complete = scanned
+        if complete:
+            reason = " ".join(str(exc).split())[:160] or type(exc).__name__
+            return RecordingError(f"recording {self.path}: damaged MCAP file ({reason})")
+        return RecordingError(f"recording {self.path}: truncated or damaged MCAP file: its "
+                              f"records are whole up to byte {end:,} of {size:,}")
 
     def __enter__(self) -> Recording:
         return self

@@ -15,9 +15,11 @@ receives the children's logs, the report JSON and the figures.
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import queue
+import re
 import signal
 import socket
 import subprocess
@@ -633,6 +635,13 @@ def recording_path(path: Path, restarts: int) -> Path:
     """Where the recorder writes: ``path``, and after its n-th restart ``<stem>.<n><suffix>``
     (the earlier file stays as it was closed)."""
     return path if restarts == 0 else path.with_name(f"{path.stem}.{restarts}{path.suffix}")
+
+
+def restarted_recordings(path: Path) -> list[Path]:
+    """The files ``recording_path`` names after restarts that exist now (an earlier run's)."""
+    restarted = re.compile(rf"{re.escape(path.stem)}\.[1-9][0-9]*{re.escape(path.suffix)}")
+    return sorted(earlier for earlier in path.parent.glob(f"{glob.escape(path.stem)}.*")
+                  if restarted.fullmatch(earlier.name))
 
 
 def measurement_counts(statuses: list[ProcessStatus]) -> dict[str, int | None]:

@@ -147,6 +147,8 @@ def load(path: str | Path, required: list[str] | tuple[str, ...] = ()) -> Creden
         raise AccessError(f"credentials {path}: no such file") from None
     except OSError as exc:
         raise AccessError(f"credentials {path}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise AccessError(f"credentials {path}: not a credentials file (not UTF-8 text)") from None
     if mode & 0o077:
         raise AccessError(f"credentials {path}: open to group or others (mode "
                           f"{stat.S_IMODE(mode):04o}); chmod 600 it")

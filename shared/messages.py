@@ -26,7 +26,13 @@ from shared.features import Observation
 from shared.measurements import MEASUREMENT_FIELDS, Measurement
 from shared.outcomes import Outcome
 from shared.radio import JammerParams
-from shared.scenario import MAX_UAVS
+from shared.scenario import (
+    MAX_JAMMER_HEIGHT_M,
+    MAX_JAMMER_POWER_W,
+    MAX_UAVS,
+    JammerHeight,
+    JammerPower,
+)
 
 MAX_WEIGHTS_BYTES = 8 * 2**20
 MAX_REPORTS = 100  # the scenario's own limit on uav.measurements_per_step
@@ -249,8 +255,8 @@ class SinrMap(_Weights):
 class JammerInfo(Message):
     x: Finite
     y: Finite
-    power_w: NonNegative
-    height_m: NonNegative
+    power_w: JammerPower
+    height_m: JammerHeight
 
     @classmethod
     def parse(cls, text: str, default_height: float) -> JammerInfo:
@@ -260,8 +266,9 @@ class JammerInfo(Message):
             return cls(x=x, y=y, power_w=power,
                        height_m=default_height if height is None else height)
         except ValidationError:
-            raise ValueError(f"jammer {text!r}: expected finite numbers, power and height "
-                             ">= 0") from None
+            raise ValueError(f"jammer {text!r}: expected finite numbers, power 0 to "
+                             f"{MAX_JAMMER_POWER_W:g} W and height 0 to {MAX_JAMMER_HEIGHT_M:g} "
+                             "m") from None
 
     @staticmethod
     def params(jammer: JammerInfo | None) -> JammerParams | None:
@@ -290,8 +297,8 @@ class JammerCommand(Message):
     action: Literal["set", "off", "show"]
     x: Finite | None = None
     y: Finite | None = None
-    power_w: NonNegative | None = None
-    height_m: NonNegative | None = None
+    power_w: JammerPower | None = None
+    height_m: JammerHeight | None = None
 
     @model_validator(mode="after")
     def _complete(self) -> JammerCommand:

@@ -29,6 +29,13 @@ DEFAULT_SCENARIO = "icc2021"
 # The most UAVs one episode flies: what the world, the lookahead and the bus messages are sized
 # for (the city scenario at 1,024 UAVs is benchmarks/bench_scale.py's largest case).
 MAX_UAVS = 1024
+# The strongest and highest jammer a scenario or a live command may set: a thousand times the
+# GBSs' 1 W and twenty times the UAVs' altitude are far past anything the maps are made for;
+# beyond them a typing slip (1e30 W) would turn the whole area off without a word.
+MAX_JAMMER_POWER_W = 1000.0
+MAX_JAMMER_HEIGHT_M = 1000.0
+JammerPower = Annotated[float, Field(ge=0, le=MAX_JAMMER_POWER_W)]
+JammerHeight = Annotated[float, Field(ge=0, le=MAX_JAMMER_HEIGHT_M)]
 
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -159,8 +166,8 @@ class Jammer(_Strict):
     enabled: bool = True
     x: Finite
     y: Finite
-    power_w: NonNegative
-    height_m: NonNegative
+    power_w: JammerPower
+    height_m: JammerHeight
     efficiency_db: Annotated[float, Field(le=0, allow_inf_nan=False)]
 
 
@@ -188,6 +195,11 @@ class Missions(_Strict):
         if self.max_trip_m is not None and self.max_trip_m < self.min_trip_m:
             raise ValueError("missions.max_trip_m is below missions.min_trip_m")
         return self
+
+    def room(self, area: Area) -> tuple[float, float]:
+        """Width and height of the part of ``area`` where starts and destinations are drawn."""
+        return (area.x_max - area.x_min - 2 * self.margin_m,
+                area.y_max - area.y_min - 2 * self.margin_m)
 
 
 class Policy(_Strict):
@@ -248,6 +260,13 @@ class Scenario(_Strict):
                 raise ValueError(f"gbs.positions: ({x}, {y}) lies outside the area")
         if not self.area.contains(self.jammer.x, self.jammer.y):
             raise ValueError("jammer: position lies outside the area")
+        width, height = self.missions.room(self.area)
+        if width <= 0 or height <= 0:
+            raise ValueError("missions.margin_m leaves no room inside the area")
+        if self.missions.min_trip_m > math.hypot(width, height):
+            raise ValueError(f"missions.min_trip_m ({self.missions.min_trip_m:g} m) is longer "
+                             f"than any trip inside the margin ({math.hypot(width, height):.1f} "
+                             "m at most)")
         if self.policy.nearby_gbs > len(self.gbs.positions):
             raise ValueError("policy.nearby_gbs exceeds the number of GBSs")
         if self.uav.altitude_m == self.gbs.height_m:
@@ -291,10 +310,13 @@ class Scenario(_Strict):
             data["name"] = name
         return Scenario.model_validate(data)
 
-    def with_jammer(self, x: float, y: float, power_w: float) -> Scenario:
-        """The same scenario with the jammer moved (height and efficiency kept)."""
+    def with_jammer(self, x: float, y: float, power_w: float,
+                    height_m: float | None = None) -> Scenario:
+        """The same scenario with the jammer moved (its efficiency kept, and its height unless
+        given)."""
+        height = {} if height_m is None else {"jammer.height_m": height_m}
         return self.changed({"jammer.enabled": True, "jammer.x": x, "jammer.y": y,
-                             "jammer.power_w": power_w})
+                             "jammer.power_w": power_w, **height})
 
     def without_jammer(self) -> Scenario:
         return self.changed({"jammer.enabled": False})
@@ -307,6 +329,8 @@ def resolve_scenario_path(name_or_path: str | Path | None) -> Path:
     candidate = Path(name_or_path)
     if candidate.suffix == "" and len(candidate.parts) == 1:
         candidate = SCENARIO_DIR / f"{candidate.name}.toml"
+    if candidate.is_dir():
+        raise ScenarioError(f"scenario {name_or_path!s}: a directory, not a TOML file")
     if not candidate.is_file():
         known = ", ".join(sorted(p.stem for p in SCENARIO_DIR.glob("*.toml")))
         raise ScenarioError(f"scenario {name_or_path!s}: no such file (known names: {known})")

@@ -35,10 +35,11 @@ def _free_port() -> int:
 
 
 # {tmp}: the test's directory; {file}: a regular file; {dir}, {tmp}/dir.png and
-# {tmp}/dir.safetensors: directories; {binary}: a file that is not UTF-8; {bools}: points
-# given as JSON booleans; {extended_run}, {broken_run}, {older_run}: checkpoints train --resume
-# cannot use; {port}: a free loopback port (no router behind it); {other_world}: a scenario
-# in a radio world no shipped survey map was learned in.
+# {tmp}/dir.safetensors: directories; {binary}: a file that is not UTF-8; {dangling}: a link
+# to a file in a directory that does not exist; {header_only}: a training log of no episodes;
+# {bools}: points given as JSON booleans; {extended_run}, {broken_run}, {older_run}:
+# checkpoints train --resume cannot use; {port}: a free loopback port (no router behind it);
+# {other_world}: a scenario in a radio world no shipped survey map was learned in.
 CASES = [
     # scenario show
     (["scenario", "show", "--scenario", "nope"], 2),
@@ -69,6 +70,11 @@ CASES = [
     (["map", "--out", "{tmp}/map.png", "--resolution", "0"], 2),
     (["map", "--out", "{tmp}/map.png", "--resolution", "5000"], 2),
     (["map", "--out", "{tmp}/map.png", "--jammer", "0,0,-1"], 2),
+    (["map", "--out", "{tmp}/map.png", "--jammer", "0,0,2000"], 2),
+    (["map", "--out", "{tmp}/map.png", "--jammer", "0,0,1,5000"], 2),
+    (["map", "--out", "{tmp}/map.png", "--jammer", ""], 2),
+    (["map", "--out", "{dangling}"], 2),
+    (["map", "--out", "/proc/map.png"], 2),  # writable by its mode, to root; not in fact
     # eval
     (["eval", "--episodes", "0"], 2),
     (["eval", "--episodes", "-3"], 2),
@@ -84,6 +90,10 @@ CASES = [
     (["eval", "--model", SINR_MAP, "--episodes", "1"], 2),
     (["eval", "--sinr-map", VALUE, "--episodes", "1"], 2),
     (["eval", "--scenario", "nope"], 2),
+    (["eval", "--scenario", "{dir}"], 2),
+    (["eval", "--uavs", "200", "--method", "straight", "--episodes", "1"], 2),
+    (["eval", "--method", "orca", "--model", "paper", "--episodes", "1"], 2),
+    (["eval", "--method", "perfect", "--sinr-map", SINR_MAP, "--episodes", "1"], 2),
     # table
     (["table", "--episodes", "0"], 2),
     (["table", "--seed", "-1"], 2),
@@ -97,6 +107,8 @@ CASES = [
     (["figures", "--train-log", "{tmp}/missing.csv", "--out", "{tmp}/f"], 2),
     (["figures", "--train-log", "{binary}", "--out", "{tmp}/f"], 2),
     (["figures", "--train-log", "{file}", "--out", "{tmp}/f"], 2),
+    (["figures", "--train-log", "{header_only}", "--out", "{tmp}/f"], 2),
+    (["figures", "--train-log", "{dir}", "--out", "{tmp}/f"], 2),
     (["figures", "--model", "{tmp}/missing.safetensors", "--out", "{tmp}/f"], 2),
     # train
     (["train", "--episodes", "0", "--out", "{tmp}/r"], 2),
@@ -132,6 +144,9 @@ CASES = [
     (["online-map", "--out", "{tmp}/o.png", "--period", "0"], 2),
     (["online-map", "--out", "{tmp}/o.png", "--period", "nan"], 2),
     (["online-map", "--out", "{tmp}/o.png", "--period", "inf"], 2),
+    (["online-map", "--out", "{tmp}/o.png", "--period", "0.001"], 2),
+    (["online-map", "--out", "{tmp}/o.png", "--period", "1e300"], 2),
+    (["online-map", "--out", "{tmp}/o.png", "--uavs", "10000"], 2),
     (["online-map", "--out", "{tmp}/o.png", "--seed", "-1"], 2),
     (["online-map", "--out", "{tmp}/o.png", "--model", "{tmp}/missing.safetensors"], 2),
     (["online-map", "--out", "{tmp}/o.png", "--model", VALUE], 2),
@@ -145,6 +160,7 @@ CASES = [
     (["up", "--episodes", "1", "--duration", "5"], 2),
     (["up", "--jammer", "1,2"], 2),
     (["up", "--jammer", "999,0,1"], 2),
+    (["up", "--uavs", "300"], 2),
     (["up", "--swap-to", "0,0,-1"], 2),
     (["up", "--model", "{tmp}/missing.safetensors"], 2),
     (["up", "--retrain-samples", "1"], 2),
@@ -169,6 +185,8 @@ CASES = [
     (["jammer", "set", "0,0,nan"], 2),
     (["jammer", "set", "0,0,-1"], 2),
     (["jammer", "set", "0,0,1,-1"], 2),
+    (["jammer", "set", "0,0,1e300"], 2),
+    (["jammer", "set", "0,0,1,1e9"], 2),
     (["jammer", "set", "0,0"], 2),
     (["jammer", "set", "a,0,1"], 2),
     (["jammer", "set", "--x", "0", "--y", "0"], 2),
@@ -196,6 +214,8 @@ def places(tmp_path, monkeypatch):
     for name in ("dir", "dir.png", "dir.safetensors"):
         (tmp_path / name).mkdir()
     (tmp_path / "binary").write_bytes(b"\xff\xfe\x00\x81 not text")
+    (tmp_path / "dangling.png").symlink_to(tmp_path / "missing" / "map.png")
+    (tmp_path / "header_only.csv").write_text("episode,mean_return,straight_bound\n")
     (tmp_path / "bools.json").write_text(json.dumps([[True, False]]))
     extended = tmp_path / "extended_run" / "checkpoint"
     extended.mkdir(parents=True)
@@ -216,6 +236,8 @@ def places(tmp_path, monkeypatch):
         "other_world": str(tmp_path / "other_world.toml"),
         "tmp": str(tmp_path), "file": str(tmp_path / "file"), "dir": str(tmp_path / "dir"),
         "binary": str(tmp_path / "binary"), "bools": str(tmp_path / "bools.json"),
+        "dangling": str(tmp_path / "dangling.png"),
+        "header_only": str(tmp_path / "header_only.csv"),
         "extended_run": str(tmp_path / "extended_run"),
         "broken_run": str(tmp_path / "broken_run"), "older_run": str(tmp_path / "older_run"),
         "port": str(_free_port()),

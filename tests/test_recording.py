@@ -13,10 +13,12 @@ from pathlib import Path
 
 import msgpack
 import pytest
+from mcap.records import Chunk
+from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
 from jamnav.cli import main as jamnav
-from jamnav.recording import Recording, RecordingWriter
+from jamnav.recording import Recording, RecordingError, RecordingWriter
 from shared import access, bus
 from shared.messages import Action, MessageError, UavOutcomes, ValueWeights, WorldState, encode
 from shared.topics import Topics
@@ -138,7 +140,7 @@ def test_a_missing_or_damaged_recording_is_one_line_and_exit_2(recorded_run, tmp
         writer.start()
         writer.finish()
     for path, reason in ((tmp_path / "absent.mcap", "No such file"),
-                         (cut, "not a complete MCAP file"), (junk, "not a complete MCAP file"),
+                         (cut, "truncated or damaged MCAP file"), (junk, "not an MCAP file"),
                          (foreign, "not a jamnav recording")):
         code = jamnav(["replay", str(path), "--endpoint", free_endpoint()])
         err = capsys.readouterr().err
@@ -186,3 +188,140 @@ def test_on_a_secure_system_the_recorder_hears_everything_and_may_send_nothing(t
         recorded = [(item.key, item.payload) for item in recording.messages()]
     assert sorted(recorded) == sorted([(topics.event("uav_outcomes"), outcome),
                                        (topics.state, state), (topics.action(0), action)])
+
+
+def small_recording(path: Path) -> bytes:
+    """A recording of a few messages, one of them kept verbatim (an attachment): its bytes."""
+    writer = RecordingWriter(path, "jamnav")
+    try:
+        for step in range(5):
+            writer.write("jamnav/uav/0/action", Action,
+                         encode(Action(episode=0, step=step, uav=0, speed=1.0, heading=0.5)),
+                         step * 10**8)
+        writer.write("jamnav/uav/0/action", Action,
+                     msgpack.packb({"uav": 0, "episode": 0, "step": 5, "speed": 2,
+                                    "heading": 0}), 6 * 10**8)
+    finally:
+        writer.close()
+    return path.read_bytes()
+
+
+# A run that the check it should stop at lets through ends soon, and fails the test.
+BRIEF_UP = ("--duration", "1", "--no-web", "--no-figures")
+
+
+def one_error_line(capsys) -> str:
+    err = capsys.readouterr().err
+    assert err.startswith("jamnav: error: ") and err.count("\n") == 1, err
+    return err
+
+
+def test_an_existing_recording_is_never_written_over(tmp_path, capsys):
+    kept = small_recording(tmp_path / "u1.mcap")
+    # No router listens there: a refusal that came after connecting would be exit 1, later.
+    code = jamnav(["record", "--out", str(tmp_path / "u1.mcap"), "--duration", "2",
+                   "--endpoint", free_endpoint()])
+    assert code == 2 and "exists; choose another name or remove it" in one_error_line(capsys)
+    code = jamnav(["up", "--uavs", "2", "--record", str(tmp_path / "u1.mcap"), *BRIEF_UP,
+                   "--endpoint", free_endpoint(), "--run-dir", str(tmp_path / "run")])
+    assert code == 2 and "--record" in one_error_line(capsys)
+    assert (tmp_path / "u1.mcap").read_bytes() == kept and not (tmp_path / "run").exists()
+    # Nor one made between the check and the recording.
+    with pytest.raises(RecordingError, match="cannot create it"):
+        RecordingWriter(tmp_path / "u1.mcap", "jamnav")
+    assert (tmp_path / "u1.mcap").read_bytes() == kept
+
+
+def test_up_refuses_a_recording_that_its_restarted_recorder_would_write_over(tmp_path,
+                                                                           capsys):
+    kept = small_recording(tmp_path / "flight.3.mcap")
+    code = jamnav(["up", "--uavs", "2", "--record", str(tmp_path / "flight.mcap"), *BRIEF_UP,
+                   "--endpoint", free_endpoint(), "--run-dir", str(tmp_path / "run")])
+    err = one_error_line(capsys)
+    assert code == 2 and "flight.3.mcap exists" in err
+    assert (tmp_path / "flight.3.mcap").read_bytes() == kept
+    assert not (tmp_path / "flight.mcap").exists() and not (tmp_path / "run").exists()
+
+
+def test_a_link_as_the_recording_is_refused_up_front(tmp_path, capsys):
+    kept = small_recording(tmp_path / "earlier.mcap")
+    dangling, to_earlier = tmp_path / "dangling.mcap", tmp_path / "to_earlier.mcap"
+    dangling.symlink_to(tmp_path / "nowhere" / "x.mcap")
+    to_earlier.symlink_to(tmp_path / "earlier.mcap")
+    for link in (dangling, to_earlier):
+        code = jamnav(["record", "--out", str(link), "--endpoint", free_endpoint()])
+        err = one_error_line(capsys)
+        assert code == 2 and err.startswith(f"jamnav: error: --out {link}: "), err
+        assert link.is_symlink()
+    assert not (tmp_path / "nowhere").exists()
+    assert (tmp_path / "earlier.mcap").read_bytes() == kept
+
+
+@pytest.mark.parametrize("speed", ["1e-300", "0.001", "0", "-1", "nan", "inf", "1001"])
+def test_a_replay_speed_out_of_range_is_one_line(speed, tmp_path, capsys):
+    small_recording(tmp_path / "r.mcap")
+    code = jamnav(["replay", str(tmp_path / "r.mcap"), "--speed", speed,
+                   "--endpoint", free_endpoint()])
+    assert code == 2 and "--speed must be between 0.01 and 1000" in one_error_line(capsys)
+
+
+@pytest.mark.parametrize("speed", ["0.01", "1000"])
+def test_the_replay_speeds_at_the_ends_of_the_range_are_taken(speed, tmp_path, capsys):
+    # Taken: what stops the replay is the next check, of the file.
+    code = jamnav(["replay", str(tmp_path / "absent.mcap"), "--speed", speed])
+    assert code == 2 and "No such file" in one_error_line(capsys)
+
+
+def test_the_replay_help_says_the_speeds_it_takes(capsys):
+    with pytest.raises(SystemExit):
+        jamnav(["replay", "--help"])
+    assert "0.01 to 1000" in " ".join(capsys.readouterr().out.split())
+
+
+def record_ends(data: bytes, tmp_path: Path) -> list[int]:
+    """Where each record of a complete MCAP file ends, as mcap's own reader walks it; the
+    magic that closes the file ends it."""
+    path = tmp_path / "walked.mcap"
+    path.write_bytes(data)
+    ends = []
+    with path.open("rb") as stream:
+        for _ in StreamReader(stream, emit_chunks=True).records:
+            ends.append(stream.tell())
+    return [*ends, len(data)]
+
+
+def test_a_truncated_recording_says_so_and_where_its_whole_records_end(tmp_path, capsys):
+    good = small_recording(tmp_path / "good.mcap")
+    ends = record_ends(good, tmp_path)
+    cut_path = tmp_path / "cut.mcap"
+    # At and just after every record's end (a writer killed there), and inside the closing
+    # magic, the file's last record.
+    for cut in sorted({*ends[:-1], *(end + 1 for end in ends[:-1]), len(good) - 3}):
+        cut_path.write_bytes(good[:cut])
+        code = jamnav(["replay", str(cut_path), "--endpoint", free_endpoint()])
+        whole = max(end for end in ends if end <= cut)
+        assert code == 2 and one_error_line(capsys) == (
+            f"jamnav: error: recording {cut_path}: truncated or damaged MCAP file: its "
+            f"records are whole up to byte {whole:,} of {cut:,}\n"), cut
+
+
+def test_a_recording_damaged_inside_is_one_line(tmp_path):
+    good = bytearray(small_recording(tmp_path / "good.mcap"))
+    with (tmp_path / "good.mcap").open("rb") as stream:
+        reader = StreamReader(stream, emit_chunks=True)
+        chunk_end = next(stream.tell() for record in reader.records
+                         if isinstance(record, Chunk))
+    good[chunk_end - 5] ^= 0xFF  # in the chunk's compressed messages
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(good)
+    # Its summary is whole: the damage shows when the replay reaches the chunk.
+    with Recording(damaged) as recording, pytest.raises(RecordingError) as refused:
+        list(recording.messages())
+    assert str(refused.value).startswith(f"recording {damaged}: damaged MCAP file (")
+    assert "\n" not in str(refused.value)
+
+
+def test_an_empty_recording_is_one_line(tmp_path, capsys):
+    (tmp_path / "empty.mcap").touch()
+    code = jamnav(["replay", str(tmp_path / "empty.mcap"), "--endpoint", free_endpoint()])
+    assert code == 2 and one_error_line(capsys).endswith("empty.mcap: an empty file\n")

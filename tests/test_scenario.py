@@ -43,6 +43,13 @@ def test_load_by_path_equals_load_by_name():
         ("measurement_noise_db = 1.0", "measurement_noise_db = -1.0",
          "uav.measurement_noise_db"),
         ("min_trip_m = 40.0", "min_trip_m = 40.0\nmax_trip_m = 30.0", "missions"),
+        # The missions' area inside the 5 m margin is 90 m square, with a 127.3 m diagonal; a
+        # 50 m margin leaves nothing of the 100 m area.
+        ("margin_m = 5.0", "margin_m = 50.0", "missions.margin_m leaves no room"),
+        ("min_trip_m = 40.0", "min_trip_m = 128.0", "longer than any trip inside the margin "
+         "(127.3 m at most)"),
+        ("power_w = 1.0\n# Open: a jammer", "power_w = 1001.0\n# Open: a jammer",
+         "jammer.power_w"),
         ("max_attenuation_db = 20.0", "max_attenuation_db = 20.0\nchannels = [0, 1]", "gbs"),
         ("max_attenuation_db = 20.0", "max_attenuation_db = 20.0\nchannels = " + str([-1] * 12),
          "gbs.channels"),
@@ -81,6 +88,7 @@ def test_with_jammer_keeps_height_and_validates():
     moved = scenario.with_jammer(25.0, -10.0, 0.5)
     assert (moved.jammer.x, moved.jammer.y, moved.jammer.power_w) == (25.0, -10.0, 0.5)
     assert moved.jammer.height_m == scenario.jammer.height_m
+    assert scenario.with_jammer(25.0, -10.0, 0.5, height_m=12.0).jammer.height_m == 12.0
     assert not scenario.without_jammer().jammer.enabled
 
 

@@ -72,8 +72,6 @@ class MissionSampler:
         area, missions = scenario.area, scenario.missions
         self.low = np.array([area.x_min + missions.margin_m, area.y_min + missions.margin_m])
         self.high = np.array([area.x_max - missions.margin_m, area.y_max - missions.margin_m])
-        if np.any(self.low >= self.high):
-            raise ValueError("missions.margin_m leaves no room inside the area")
         self.min_trip = missions.min_trip_m
         self.max_trip = math.inf if missions.max_trip_m is None else missions.max_trip_m
         self.min_separation = max(missions.min_separation_m, 2 * scenario.uav.radius_m + 1e-6)
