@@ -12,7 +12,7 @@
 4. Every checkpoint is scored on a fixed, seeded validation set (greedy, true map, the Table I
    jammer settings) and the best-scoring one is the result: with epsilon held at 0.1 the
    network keeps moving, and successive checkpoints differ by a few points of success.
-Checkpoints make a run resumable.
+Checkpoints make a run resumable; Ctrl-C while learning writes one before it stops.
 """
 
 from __future__ import annotations
@@ -24,17 +24,20 @@ import math
 import os
 import platform
 import shutil
+import signal
 import subprocess
 import tempfile
+import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from safetensors.numpy import load_file as load_arrays
+from safetensors import SafetensorError
+from safetensors.numpy import load as bytes_to_arrays
 from safetensors.numpy import save as arrays_to_bytes
 
 from cloud_service.rollout import (
@@ -50,7 +53,15 @@ from cloud_service.rollout import (
 )
 from cloud_service.torch_networks import TorchValueNetwork
 from shared.features import METHODS, MethodOptions, joint_state_size, observation_state
-from shared.networks import ValueNetwork, from_bytes, save_network, to_bytes
+from shared.networks import (
+    ValueNetwork,
+    WeightsError,
+    card_path,
+    from_bytes,
+    save_network,
+    sha256,
+    to_bytes,
+)
 from shared.outcomes import Outcome
 from shared.paper import TABLE_I_JAMMERS
 from shared.policy import PUBLISHED_LOOKAHEAD, LookaheadPolicy
@@ -61,6 +72,10 @@ from world_sim.core import StepResult, VectorWorld, episode_seed
 
 VALIDATION_SEED = 20210614  # fixed: every model is scored on the same episodes
 TRAINING_JAMMER_STREAM = 7  # separates the jammer schedule's random stream from missions'
+# Environments flown at once, at most: each keeps its UAVs' whole trajectories in memory (4096
+# environments of the city's 64 UAVs: 2.3 GiB), so a mistyped count is refused before it
+# allocates far more.
+MAX_ENVS = 4096
 
 
 @dataclass
@@ -86,6 +101,9 @@ class TrainConfig:
     checkpoint_every_episodes: int = 2000
     validation_episodes: int = 200  # per Table I jammer setting: 3,200 UAV-episodes, SE ~0.3 pt
     extra: dict = field(default_factory=dict)
+
+    def uav_count(self, scenario: Scenario) -> int:
+        return self.uavs or scenario.missions.uav_count
 
     def capacity(self, uavs: int) -> int:
         if self.memory_capacity is not None:
@@ -174,6 +192,31 @@ def adam(net: TorchValueNetwork, config: TrainConfig) -> torch.optim.Adam:
                             weight_decay=config.weight_decay, fused=True)
 
 
+@dataclass
+class Learner:
+    """What TD learning changes, and so what a checkpoint holds besides its progress."""
+
+    net: TorchValueNetwork
+    target: TorchValueNetwork  # gives the TD targets; follows net every target_sync_episodes
+    best: TorchValueNetwork  # the best-validated net so far
+    optimizer: torch.optim.Adam
+    memory: ReplayMemory
+
+    @classmethod
+    def fresh(cls, scenario: Scenario, config: TrainConfig) -> Learner:
+        options = METHODS[config.method]
+        size = joint_state_size(scenario, options)
+        net, target, best = (
+            TorchValueNetwork(size, scenario.policy.value_scale, options._asdict())
+            .to(torch.device(config.device)) for _ in range(3))
+        return cls(net, target, best, adam(net, config),
+                   ReplayMemory(config.capacity(config.uav_count(scenario)), size))
+
+    def networks(self) -> dict[str, TorchValueNetwork]:
+        """By the name of their checkpoint file."""
+        return {"value": self.net, "target": self.target, "best": self.best}
+
+
 def fit_value_net(
     net: TorchValueNetwork,
     states: np.ndarray,
@@ -236,6 +279,7 @@ class TrainingFlight(EpisodeHooks):
         self.recorder = TrajectoryRecorder(world.num_envs, world.num_uavs, world.step_limit, size)
         self.returns = np.zeros((world.num_envs, world.num_uavs))
         self.decisions = 0
+        self.next_episode = 0  # the first episode not yet started
         # From before_step to after_step: the rows of the UAVs about to act, and their states.
         self.rows = np.zeros(0, dtype=np.int64)
         self.states = np.zeros((0, size), dtype=np.float32)
@@ -243,6 +287,7 @@ class TrainingFlight(EpisodeHooks):
     def start(self, env: int, episode: int) -> None:
         scenario = self.world.scenario
         period = episode // scenario.training.jammer_change_every_episodes
+        self.next_episode = episode + 1
         self.world.set_jammer([env], training_jammer(scenario, self.seed, period))
         self.world.reset([env], [episode_seed(self.seed, episode)])
         self.returns[env] = 0.0
@@ -269,25 +314,6 @@ class TrainingFlight(EpisodeHooks):
         bound = straight_line_bound(world.scenario, world.start[env], world.destination[env])
         self.on_episode(EpisodeStats(int(episode), world.status[env].copy(),
                                      float(self.returns[env].mean()), float(bound.mean())))
-
-
-def fly(
-    world: VectorWorld,
-    controller,
-    maps: RasterMaps,
-    options: MethodOptions,
-    seed: int,
-    first_episode: int,
-    episodes: int,
-    on_missions: Callable[[list[tuple[np.ndarray, np.ndarray]]], None],
-    on_episode: Callable[[EpisodeStats], None],
-) -> int:
-    """Fly episodes first_episode .. first_episode+episodes-1 under the training jammer
-    schedule; every ended mission's (states, rewards) goes to ``on_missions``. Returns the
-    number of decisions taken."""
-    flight = TrainingFlight(world, maps, options, seed, on_missions, on_episode)
-    fly_episodes(world, controller, range(first_episode, first_episode + episodes), flight)
-    return flight.decisions
 
 
 def td_targets(
@@ -384,13 +410,41 @@ def sync_directory(path: Path) -> None:
         os.close(descriptor)
 
 
+VALUE_NET_FILE = "value_net.safetensors"  # the result, beside its card (value_net.json)
+
+
+class CheckpointError(ValueError):
+    """A checkpoint a run cannot continue from: missing, damaged, or made with other settings.
+    One line, naming the file or the settings."""
+
+
+def run_settings(scenario: Scenario, config: TrainConfig) -> dict[str, Any]:
+    """What a run's network depends on besides how long it trains, by the ``jamnav train``
+    options that set them: a resumed run must keep them all, or the card would describe a
+    network that no run made. The scenario counts by its content (a value network learns its
+    missions, rewards and planning values as much as its radio), whatever it is called."""
+    content = json.dumps(scenario.model_dump(mode="json"), sort_keys=True)
+    return {"--scenario": f"{scenario.name} [sha256 {sha256(content.encode())[:12]}]",
+            "--method": config.method, "--seed": config.seed,
+            "--uavs": config.uav_count(scenario)}
+
+
+# What progress.json must hold for a run to continue from it.
+PROGRESS_FIELDS = {"episodes_done": int, "next_episode": int, "wall_seconds": (int, float),
+                   "decisions": int, "td_seconds": (int, float), "orca": dict,
+                   "checkpoint_scores": list, "config": dict}
+
+
 class Checkpoint:
     """Everything a resumed run needs, under ``<out>/checkpoint/``. Each save writes a
     complete set of files into a fresh directory and only then repoints the pointer file at
     it (an atomic rename): a kill at any moment leaves the old or the new set whole. The next
-    save removes every directory the pointer does not name (older sets, a killed save's)."""
+    save removes every directory the pointer does not name (older sets, a killed save's).
+    progress.json records the digest of every other file of its set, so that a damaged one is
+    found before a resumed run reads it."""
 
     def __init__(self, out: Path):
+        self.out = out
         self.root = out / "checkpoint"
         self.pointer = self.root / "current"
 
@@ -405,19 +459,31 @@ class Checkpoint:
     def exists(self) -> bool:
         return (self.dir / "progress.json").is_file()
 
-    def save(self, net, target, best, optimizer, memory: ReplayMemory, progress: dict) -> None:
+    def progress(self) -> dict:
+        path = self.dir / "progress.json"
+        try:
+            progress = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):  # ValueError: not JSON, or not UTF-8
+            raise CheckpointError(f"{path} is unreadable") from None
+        if not isinstance(progress, dict):
+            raise CheckpointError(f"{path} is not a checkpoint's progress")
+        return progress
+
+    def save(self, learner: Learner, progress: dict) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
         fresh = Path(tempfile.mkdtemp(prefix=f"episode-{progress['episodes_done']}-",
                                       dir=self.root))
         optimizer_state = io.BytesIO()
-        torch.save(optimizer.state_dict(), optimizer_state)
+        torch.save(learner.optimizer.state_dict(), optimizer_state)
         files = {
             **{f"{name}.safetensors": to_bytes(module.inference())
-               for module, name in ((net, "value"), (target, "target"), (best, "best"))},
+               for name, module in learner.networks().items()},
             "optimizer.pt": optimizer_state.getvalue(),
-            "memory.safetensors": arrays_to_bytes(memory.arrays()),
-            "progress.json": json.dumps(progress, indent=2).encode(),
+            "memory.safetensors": arrays_to_bytes(learner.memory.arrays()),
         }
+        files["progress.json"] = json.dumps(
+            {**progress, "sha256": {name: sha256(data) for name, data in files.items()}},
+            indent=2).encode()
         for name, data in files.items():
             write_synced(fresh / name, data)
         sync_directory(fresh)
@@ -433,14 +499,133 @@ class Checkpoint:
             else:  # a killed save's staged pointer, or a file of an in-place checkpoint
                 entry.unlink()
 
-    def load(self, net, target, best, optimizer, memory: ReplayMemory) -> dict:
+    def load(self, learner: Learner, scenario: Scenario, config: TrainConfig) -> dict:
+        """Read the current set into ``learner`` and return its progress, once it is known to
+        continue the run that ``scenario`` and ``config`` describe. A missing or damaged file
+        raises CheckpointError as it is read: ``jamnav train --resume`` loads into a learner
+        of its own before it starts, to refuse in one line what would fail later."""
+        if not self.exists():
+            raise CheckpointError(f"no checkpoint in {self.dir} "
+                                  "(leave out --resume to start afresh)")
+        progress = self.progress()
+        self._check_continues(progress, scenario, config)
         current = self.dir
-        for module, name in ((net, "value"), (target, "target"), (best, "best")):
-            module.assign(from_bytes((current / f"{name}.safetensors").read_bytes()))
-        optimizer.load_state_dict(torch.load(current / "optimizer.pt", weights_only=True))
-        arrays = load_arrays(str(current / "memory.safetensors"))
-        memory.push(arrays["states"], arrays["values"])
-        return json.loads((current / "progress.json").read_text())
+        digests = progress.get("sha256")
+        if not isinstance(digests, dict):  # a checkpoint from before they were recorded
+            digests = {}
+
+        def read(name: str) -> bytes:
+            try:
+                data = (current / name).read_bytes()
+            except OSError as exc:
+                raise CheckpointError(f"{current / name}: {exc.strerror}") from None
+            if name in digests and sha256(data) != digests[name]:
+                raise CheckpointError(f"{current / name}: damaged (it is not the file the "
+                                      "checkpoint wrote)")
+            return data
+
+        for name, module in learner.networks().items():
+            try:
+                module.assign(from_bytes(read(f"{name}.safetensors"), expected=module.card))
+            except WeightsError as exc:
+                raise CheckpointError(f"{current / name}.safetensors: {exc}") from None
+        optimizer_state = read("optimizer.pt")
+        # weights_only: tensors and plain containers are unpickled, never other objects. torch
+        # reports a damaged file as any of many exception types, some with advice to unpickle
+        # anything (weights_only=False) that must not be taken: one line instead.
+        try:
+            learner.optimizer.load_state_dict(
+                torch.load(io.BytesIO(optimizer_state), weights_only=True))
+        except Exception:
+            raise CheckpointError(f"{current / 'optimizer.pt'}: damaged (not an optimizer "
+                                  "state of this network)") from None
+        learner.memory.push(*self._memory_arrays(read("memory.safetensors"),
+                                                 learner.memory.states.shape[1]))
+        return progress
+
+    def _check_continues(self, progress: dict, scenario: Scenario, config: TrainConfig) -> None:
+        """Refuse the checkpoint of a run with other settings, of an older jamnav, or one
+        that leaves no episodes to add."""
+        path = self.dir / "progress.json"
+        saved_config = progress.get("config")
+        if isinstance(saved_config, dict):
+            saved = progress.get("settings")
+            if not isinstance(saved, dict):  # from before they were recorded: its config's
+                saved = run_settings(scenario, replace(config, **{
+                    name: saved_config[name] for name in ("method", "seed", "uavs")
+                    if name in saved_config}))
+            asked = run_settings(scenario, config)
+            differing = [option for option in asked if saved.get(option) != asked[option]]
+            if differing:
+                raise CheckpointError(f"the checkpoint in {self.dir} was made with " + ", ".join(
+                    f"{option} {saved.get(option)} (not {asked[option]})"
+                    for option in differing))
+        if not isinstance(progress.get("checkpoint_scores"), list):
+            raise CheckpointError(f"{path} has no checkpoint scores (written by an older "
+                                  "jamnav); start afresh without --resume")
+        malformed = [name for name, kind in PROGRESS_FIELDS.items()
+                     if not isinstance(progress.get(name), kind)]
+        if malformed:
+            raise CheckpointError(f"{path}: damaged (missing or malformed: "
+                                  f"{', '.join(malformed)})")
+        done = progress["episodes_done"]
+        # Equal is allowed while the run's result is not written: a run killed after its last
+        # checkpoint is finished by resuming it.
+        if config.episodes < done or config.episodes == done and self._result_written(done):
+            raise CheckpointError(f"the checkpoint in {self.dir} already holds {done} "
+                                  "episodes; --episodes must exceed it")
+
+    def _result_written(self, episodes: int) -> bool:
+        """Whether the run's result is written, with the card of a run of ``episodes``."""
+        try:
+            card = json.loads(card_path(self.out / VALUE_NET_FILE).read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return False
+        return isinstance(card, dict) and card.get("episodes") == episodes
+
+    def _memory_arrays(self, data: bytes, state_size: int) -> tuple[np.ndarray, np.ndarray]:
+        path = self.dir / "memory.safetensors"
+        try:
+            arrays = bytes_to_arrays(data)
+            states, values = arrays["states"], arrays["values"]
+        except (SafetensorError, KeyError):
+            raise CheckpointError(f"{path}: damaged (not a replay memory)") from None
+        if (states.dtype != np.float32 or values.dtype != np.float32 or values.ndim != 1
+                or states.shape != (len(values), state_size)):
+            raise CheckpointError(f"{path}: damaged (states {states.shape} {states.dtype} and "
+                                  f"values {values.shape} {values.dtype}, expected (n, "
+                                  f"{state_size}) and (n,) float32)")
+        return states, values
+
+
+class DeferredInterrupt:
+    """Ctrl-C while training learns, as a request that the loop takes where the run's state
+    is whole (at the end of an episode, or after a checkpoint's save) so that it can save it;
+    a second Ctrl-C interrupts at once. Only the main thread receives signals, and a handler
+    installed by someone else stays theirs: there, nothing is deferred."""
+
+    def __init__(self):
+        self.requested = False
+        self.previous = None
+
+    def __enter__(self) -> DeferredInterrupt:
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+            self.previous = signal.signal(signal.SIGINT, self._request)
+        return self
+
+    def _request(self, _signal, _frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def __exit__(self, *_exception) -> None:
+        if self.previous is not None:
+            signal.signal(signal.SIGINT, self.previous)
+
+
+class StopRequested(Exception):
+    """Raised at the end of an episode when Ctrl-C asked training to stop."""
 
 
 def forget_logged_after(log_path: Path, episodes: int) -> None:
@@ -461,28 +646,25 @@ def train(
     command: str = "",
 ) -> dict:
     """Run Algorithm 1 and write value_net.safetensors, its card, train_log.csv and the
-    reward curve into ``out``. Returns the card."""
+    reward curve into ``out``. Returns the card. Ctrl-C while learning saves a checkpoint of
+    the episodes done before it raises KeyboardInterrupt (reported as phase "interrupted")."""
     out.mkdir(parents=True, exist_ok=True)
     commit = git_commit()  # the code that trains, even if the tree moves on meanwhile
-    uavs = config.uavs or scenario.missions.uav_count
+    uavs = config.uav_count(scenario)
     device = torch.device(config.device)
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng([config.seed, 1])
     options = METHODS[config.method]
-    size = joint_state_size(scenario, options)
-    net = TorchValueNetwork(size, scenario.policy.value_scale, options._asdict()).to(device)
-    target = TorchValueNetwork(size, scenario.policy.value_scale, options._asdict()).to(device)
-    best = TorchValueNetwork(size, scenario.policy.value_scale, options._asdict()).to(device)
+    learner = Learner.fresh(scenario, config)
+    net, target, best, memory = learner.net, learner.target, learner.best, learner.memory
     maps = perfect_maps(scenario)
-    memory = ReplayMemory(config.capacity(uavs), size)
     checkpoint = Checkpoint(out)
     log_path = out / "train_log.csv"
     report = progress or (lambda info: None)
 
-    if resume and checkpoint.exists():
-        optimizer = adam(net, config)
-        state = checkpoint.load(net, target, best, optimizer, memory)
+    if resume:
+        state = checkpoint.load(learner, scenario, config)
         done, next_episode = state["episodes_done"], state["next_episode"]
         scores = state["checkpoint_scores"]
         wall_before, decisions, td_seconds = (state["wall_seconds"], state["decisions"],
@@ -500,7 +682,6 @@ def train(
         orca_info = {"episodes": config.orca_episodes, "pairs": int(len(values)),
                      "epochs": config.orca_epochs, "final_mse": mse,
                      "seconds": time.perf_counter() - started}
-        optimizer = adam(net, config)
         target.load_state_dict(net.state_dict())
         done, next_episode, wall_before, decisions, td_seconds = 0, 0, orca_info["seconds"], 0, 0.0
         scores: list[dict] = []
@@ -518,6 +699,8 @@ def train(
     session_start = time.perf_counter()
     log_handle = log_path.open("a", newline="")
     log = csv.writer(log_handle)
+    interrupt = DeferredInterrupt()
+    chunk_end = done
 
     def epsilon_at(episode: int) -> float:
         share = min(1.0, episode / decay_episodes)
@@ -538,9 +721,9 @@ def train(
             prediction = net(torch.from_numpy(batch_states).to(device))
             loss = torch.nn.functional.mse_loss(prediction,
                                                 torch.from_numpy(batch_values).to(device))
-            optimizer.zero_grad()
+            learner.optimizer.zero_grad()
             loss.backward()
-            optimizer.step()
+            learner.optimizer.step()
         net.eval()
         # The lookahead takes the updated numpy form (off the CPU it is a copy), reading the
         # weights that decay has left subnormal as zeros: the same values, without the cost
@@ -558,34 +741,56 @@ def train(
         report({"phase": "td", "episodes_done": done, "episodes": config.episodes,
                 "epsilon": controller.epsilon, "wall_seconds": wall,
                 "recent_success": float(np.mean(np.concatenate(recent) == Outcome.SUCCESS))})
+        # The chunk's last episode goes on to its validation: stopping there would leave it
+        # to a resumed run that never validates at that episode.
+        if interrupt.requested and done < chunk_end:
+            raise StopRequested
 
     controller.epsilon = epsilon_at(done)
     try:
-        while done < config.episodes:
-            chunk = min(config.checkpoint_every_episodes, config.episodes - done)
-            chunk_start = time.perf_counter()
-            decisions += fly(world, controller, maps, options, config.seed,
-                             next_episode, chunk, on_missions, on_episode)
-            td_seconds += time.perf_counter() - chunk_start
-            next_episode += chunk
-            log_handle.flush()
-            scores.append({"episode": done, **validate(scenario,
-                                                       net.inference().read_subnormals_as_zero(),
-                                                       config.validation_episodes, uavs),
-                           "resident_mib": resident_mib()})
-            leader = best_score(scores)
-            if leader is scores[-1]:
-                best.load_state_dict(net.state_dict())
-            report({"phase": "validation", "episodes_done": done,
-                    "success_rate": scores[-1]["success_rate"],
-                    "best_episode": leader["episode"],
-                    "best_success_rate": leader["success_rate"]})
-            checkpoint.save(net, target, best, optimizer, memory, {
-                "episodes_done": done, "next_episode": next_episode,
-                "wall_seconds": wall_before + time.perf_counter() - session_start,
-                "decisions": decisions, "td_seconds": td_seconds, "orca": orca_info,
-                "checkpoint_scores": scores, "config": asdict(config),
-            })
+        with interrupt:
+            while done < config.episodes:
+                # Chunks end at multiples of checkpoint_every_episodes, so that a run resumed
+                # from where Ctrl-C stopped it validates and checkpoints where any other does.
+                every = config.checkpoint_every_episodes
+                chunk_end = min(done + every - done % every, config.episodes)
+                flight = TrainingFlight(world, maps, options, config.seed, on_missions,
+                                        on_episode)
+                chunk_start = time.perf_counter()
+                try:
+                    fly_episodes(world, controller, range(next_episode, next_episode +
+                                                          chunk_end - done), flight)
+                    stopped = False
+                except StopRequested:
+                    stopped = True
+                decisions += flight.decisions
+                td_seconds += time.perf_counter() - chunk_start
+                # Stopped, the episodes in flight are dropped and the resumed run flies the
+                # next unstarted ones instead: their missions count as any other.
+                next_episode = flight.next_episode
+                log_handle.flush()
+                if not stopped:
+                    scores.append({"episode": done, **validate(
+                        scenario, net.inference().read_subnormals_as_zero(),
+                        config.validation_episodes, uavs), "resident_mib": resident_mib()})
+                    leader = best_score(scores)
+                    if leader is scores[-1]:
+                        best.load_state_dict(net.state_dict())
+                    report({"phase": "validation", "episodes_done": done,
+                            "success_rate": scores[-1]["success_rate"],
+                            "best_episode": leader["episode"],
+                            "best_success_rate": leader["success_rate"]})
+                checkpoint.save(learner, {
+                    "episodes_done": done, "next_episode": next_episode,
+                    "wall_seconds": wall_before + time.perf_counter() - session_start,
+                    "decisions": decisions, "td_seconds": td_seconds, "orca": orca_info,
+                    "checkpoint_scores": scores, "config": asdict(config),
+                    "settings": run_settings(scenario, config),
+                })
+                if interrupt.requested:
+                    report({"phase": "interrupted", "episodes_done": done,
+                            "checkpoint": str(checkpoint.dir)})
+                    raise KeyboardInterrupt
     finally:
         log_handle.close()
 
@@ -619,7 +824,7 @@ def train(
         },
         "reproduce": command or "jamnav train",
     }
-    save_network(best.inference(), out / "value_net.safetensors", card)
+    save_network(best.inference(), out / VALUE_NET_FILE, card)
     from shared.plots import plot_reward_curve  # matplotlib only when writing
 
     plot_reward_curve(log_path, out / "reward_curve.png")
@@ -642,7 +847,8 @@ def orca_pairs(
 
     world = VectorWorld(scenario, config.envs, uavs)
     # Offset seeds so ORCA flies other missions than TD training's first episodes.
-    fly(world, OrcaController(scenario), maps, options, config.seed + 1_000_003, 0,
-        config.orca_episodes, on_missions, lambda stats: None)
+    flight = TrainingFlight(world, maps, options, config.seed + 1_000_003, on_missions,
+                            lambda stats: None)
+    fly_episodes(world, OrcaController(scenario), range(config.orca_episodes), flight)
     return np.concatenate(states), np.concatenate(values).astype(np.float32)
 

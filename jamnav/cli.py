@@ -13,6 +13,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -43,6 +44,9 @@ from shared.shipped import (
     value_net_path,
 )
 from shared.topics import DEFAULT_ENDPOINT, DEFAULT_PREFIX, ENDPOINT_ENV, ArgumentParser
+
+if TYPE_CHECKING:  # the training module imports torch: only where a command trains
+    from cloud_service.value_training import TrainConfig
 
 
 # -- argument helpers -------------------------------------------------------------------------
@@ -390,57 +394,42 @@ def cmd_figures(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_checkpoint(out: Path, scenario: Scenario, method: str) -> None:
-    """--resume continues a run; without a usable checkpoint train() would silently start
-    afresh (hours of ORCA and TD learning), or fail with a traceback while loading one of
-    another method or scenario."""
-    from cloud_service.value_training import Checkpoint
-    from shared.features import METHODS, joint_state_size
-    from shared.networks import WeightsError, from_bytes
+def _check_checkpoint(out: Path, scenario: Scenario, config: TrainConfig, resume: bool) -> None:
+    """A checkpoint in ``out`` must fit the command: --resume continues it, so every file it
+    would load must be whole and its run made with the same settings (train() would fail
+    late, as a traceback, or continue another run under this one's card); a fresh start would
+    throw it away."""
+    from cloud_service.value_training import Checkpoint, CheckpointError, Learner
 
     checkpoint = Checkpoint(out)
-    if not checkpoint.exists():
-        raise UsageError(f"--resume: no checkpoint in {checkpoint.dir} "
-                         "(leave out --resume to start afresh)")
-    progress = checkpoint.dir / "progress.json"
-    try:
-        state = json.loads(progress.read_text(encoding="utf-8"))
-        saved = state.get("config", {})
-        saved_method = saved.get("method") if isinstance(saved, dict) else None
-    except (OSError, ValueError, AttributeError):  # ValueError: not JSON, or not UTF-8
-        raise UsageError(f"--resume: {progress} is unreadable") from None
-    if saved_method is not None and saved_method != method:
-        raise UsageError(f"--resume: the checkpoint in {checkpoint.dir} is of --method "
-                         f"{saved_method}, not {method}")
-    if not isinstance(state.get("checkpoint_scores"), list):
-        raise UsageError(f"--resume: {progress} has no checkpoint scores (written by an "
-                         "older jamnav); start afresh without --resume")
-    expected = {"kind": "value", "input_size": joint_state_size(scenario, METHODS[method])}
-    for name in ("value", "best"):
-        weights = checkpoint.dir / f"{name}.safetensors"
+    if resume:
         try:
-            from_bytes(weights.read_bytes(), expected=expected)
-        except OSError as exc:
-            raise UsageError(f"--resume: {weights}: {exc.strerror}") from None
-        except WeightsError as exc:
-            raise UsageError(f"--resume: {weights}: {exc}") from None
+            checkpoint.load(Learner.fresh(scenario, config), scenario, config)
+        except CheckpointError as exc:
+            raise UsageError(f"--resume: {exc}") from None
+    elif checkpoint.exists():
+        try:
+            held = f"a checkpoint of {checkpoint.progress()['episodes_done']} episodes"
+        except (CheckpointError, KeyError):  # damaged, but still a run not to throw away
+            held = "a checkpoint"
+        raise UsageError(f"--out {out} holds {held}: --resume continues it; to start afresh, "
+                         f"remove {checkpoint.root} or choose another --out")
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from cloud_service.value_training import TrainConfig, train
+    from cloud_service.value_training import MAX_ENVS, TrainConfig, train
     from jamnav.progress import ProgressBar
 
     scenario = _load_scenario(args)
     check_range("--episodes", args.episodes, 1)
-    check_range("--envs", args.envs, 1)
+    check_range("--envs", args.envs, 1, MAX_ENVS)
     check_range("--uavs", args.uavs, 1, 64)
     check_range("--seed", args.seed, 0, SEED_MAX)
     _check_device(args.device)
     out = output_path("--out", args.out, directory=True)
-    if args.resume:
-        _check_checkpoint(out, scenario, args.method)
     config = TrainConfig(episodes=args.episodes, envs=args.envs, uavs=args.uavs,
                          seed=args.seed, device=args.device, method=args.method)
+    _check_checkpoint(out, scenario, config, args.resume)
     bar = ProgressBar("train", args.episodes)
     validated = ""
 
@@ -453,6 +442,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         elif phase == "validation":
             validated = (f" validation {info['success_rate']:.1%} (best "
                          f"{info['best_success_rate']:.1%} at {info['best_episode']})")
+        elif phase == "interrupted":
+            if bar.interactive:  # its line is not ended yet
+                print(file=sys.stderr)
+            print(f"train: stopped after {info['episodes_done']} episodes, all of them in the "
+                  f"checkpoint in {info['checkpoint']}: --resume continues it", file=sys.stderr)
         else:
             print(f"train: {phase} {info.get('episodes', '')}".rstrip(), file=sys.stderr)
 
@@ -678,13 +672,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     training = commands.add_parser("train", help="train the value network (Algorithm 1)")
     _add_scenario(training)
-    training.add_argument("--episodes", type=int, default=20000)
-    training.add_argument("--envs", type=int, default=64, help="environments flown at once")
+    training.add_argument("--episodes", type=int, default=20000,
+                          help="TD-learning episodes in all, resumed ones included "
+                               "(default 20000)")
+    training.add_argument("--envs", type=int, default=64,
+                          help="environments flown at once (default 64, at most 4096; more "
+                               "than --episodes adds nothing)")
     training.add_argument("--uavs", type=int, default=None, help="UAVs per episode")
     training.add_argument("--seed", type=int, default=0)
-    training.add_argument("--out", default="runs/train", metavar="DIR")
-    training.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint")
-    training.add_argument("--device", default="cpu", help="cpu (default) or cuda")
+    training.add_argument("--out", default="runs/train", metavar="DIR",
+                          help="where the network, its card, the log and the checkpoint go "
+                               "(default runs/train)")
+    training.add_argument("--resume", action="store_true",
+                          help="continue the run in DIR/checkpoint, with the settings it was "
+                               "made with and more --episodes")
+    training.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     training.add_argument(
         "--method", choices=("paper", "extended"), default="paper",
         help="paper: the paper's joint state; extended: adds disconnection memory and the "

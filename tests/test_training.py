@@ -13,6 +13,7 @@ from cloud_service import value_training
 from cloud_service.torch_networks import TorchValueNetwork
 from cloud_service.value_training import (
     ARITHMETIC_FLAGS,
+    MAX_ENVS,
     ReplayMemory,
     TrainConfig,
     discounted_returns,
@@ -20,6 +21,7 @@ from cloud_service.value_training import (
     train,
     validate,
 )
+from jamnav.cli import main
 from shared.networks import ValueNetwork, from_bytes, load_network, to_bytes
 
 CARD_KEYS = {"command", "seed", "episodes", "wall_seconds", "decisions_per_second", "git_commit",
@@ -81,6 +83,31 @@ def test_resume_keeps_the_earlier_checkpoint_scores(scenario, tmp_path):
     # The shipped weights score what the card says, on the same validation episodes.
     network, _ = load_network(tmp_path / "value_net.safetensors")
     assert validate(scenario, network, 2, 4) == resumed["validation"]
+
+
+def test_envs_are_bounded_before_anything_is_allocated(tmp_path, capsys, monkeypatch):
+    class Reached(Exception):
+        pass
+
+    def trap(*_args, **_kwargs):
+        raise Reached
+
+    monkeypatch.setattr(value_training, "train", trap)
+    argv = ["train", "--episodes", "2", "--out", str(tmp_path / "run"), "--envs"]
+    assert main([*argv, str(MAX_ENVS + 1)]) == 2
+    assert capsys.readouterr().err == f"jamnav: error: --envs must be between 1 and {MAX_ENVS}\n"
+    with pytest.raises(Reached):
+        main([*argv, str(MAX_ENVS)])
+
+
+def test_train_help_states_the_defaults_and_bounds(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", "--help"])
+    assert exit_info.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines anywhere
+    for stated in ("(default 20000)", "(default runs/train)", f"at most {MAX_ENVS}",
+                   "cpu (default), cuda or cuda:N"):
+        assert stated in text, stated
 
 
 def card_sha(out):
