@@ -341,10 +341,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     log = bus.setup_logging("recorder")
     stop = threading.Event()
     bus.stop_on_signals(stop)
-    # The long wait is for `jamnav up`, which restarts a recorder that died, maybe while its
-    # router restarts too; by hand, say what the silence is.
-    log.info("connecting to the router at %s (giving up after %g s)", endpoint,
-             bus.CONNECT_TIMEOUT_MS / 1000)
+    bus.say_connecting(log, endpoint)
     with bus.open_session("client", endpoint, login=login) as session:
         # Linux sets it per thread: this one, which writes, yields; zenoh's, which receive
         # and only queue, keep up.

@@ -323,6 +323,14 @@ def stop_on_signals(stop: threading.Event) -> None:
         threading.Thread(target=watch_parent, name="parent-watch", daemon=True).start()
 
 
+def say_connecting(log: logging.Logger, endpoint: str) -> None:
+    """Say at once what a process's connect may wait for: the long wait is for processes
+    restarted while their router restarts too, and a console or recorder started by hand
+    against no system would otherwise wait it out in silence."""
+    log.info("connecting to the router at %s (giving up after %g s)", endpoint,
+             CONNECT_TIMEOUT_MS / 1000)
+
+
 def service_session(role: str, endpoint: str, login: Login | None = None
                     ) -> tuple[zenoh.Session | None, threading.Event]:
     """What every process shell starts with: a stop event wired to signals and a client
@@ -330,6 +338,7 @@ def service_session(role: str, endpoint: str, login: Login | None = None
     cannot be reached, one line on stderr and no session (the caller exits 1)."""
     stop = threading.Event()
     stop_on_signals(stop)
+    say_connecting(logging.getLogger(role), endpoint)
     try:
         return open_session("client", endpoint, login=login), stop
     except BusError as exc:
