@@ -34,8 +34,8 @@ MAX_UAVS = 1024
 # beyond them a typing slip (1e30 W) would turn the whole area off without a word.
 MAX_JAMMER_POWER_W = 1000.0
 MAX_JAMMER_HEIGHT_M = 1000.0
-JammerPower = Annotated[float, Field(ge=0, le=MAX_JAMMER_POWER_W)]
-JammerHeight = Annotated[float, Field(ge=0, le=MAX_JAMMER_HEIGHT_M)]
+JammerPower = Annotated[float, Field(ge=0, le=MAX_JAMMER_POWER_W, allow_inf_nan=False)]
+JammerHeight = Annotated[float, Field(ge=0, le=MAX_JAMMER_HEIGHT_M, allow_inf_nan=False)]
 
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]

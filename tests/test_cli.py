@@ -61,7 +61,7 @@ def test_map_writes_a_png(capsys, tmp_path):
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["sinr", "--jammer", "0,0", "--at", "1,1"], "expected 3"),
+        (["sinr", "--jammer", "0,0", "--at", "1,1"], "expected X,Y,P"),
         (["sinr", "--jammer", "0,0,-1", "--at", "1,1"], "power"),
         (["sinr", "--jammer", "99,0,1", "--at", "1,1"], "outside the area"),
         (["sinr", "--at", "1,x"], "expected 2"),
