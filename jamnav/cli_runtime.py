@@ -28,7 +28,13 @@ from jamnav.arguments import (
     survey_map_argument,
 )
 from shared.messages import JammerCommand, mapper_summary
-from shared.scenario import MAX_UAVS, ScenarioError, load_scenario
+from shared.scenario import (
+    MAX_JAMMER_HEIGHT_M,
+    MAX_JAMMER_POWER_W,
+    MAX_UAVS,
+    ScenarioError,
+    load_scenario,
+)
 from shared.shipped import VALUE_NET_HELP, value_net_for, value_net_path
 from shared.topics import (
     DEFAULT_ENDPOINT,
@@ -190,7 +196,8 @@ def jammer_command(action: str, numbers: tuple | None = None, what: str = ""
         return JammerCommand(action="set", x=x, y=y, power_w=power, height_m=height)
     except ValueError:
         raise UsageError(f"jammer set {what}: position, power and height must be finite, "
-                         "power and height >= 0") from None
+                         f"power and height >= 0, power at most {MAX_JAMMER_POWER_W:g} W and "
+                         f"height at most {MAX_JAMMER_HEIGHT_M:g} m") from None
 
 
 def cmd_jammer(args: argparse.Namespace) -> int:

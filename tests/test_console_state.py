@@ -152,6 +152,7 @@ def test_a_request_body_becomes_the_worlds_command(body, expected):
     ({"x": "1", "y": 2, "power_w": 1}, "must be numbers"),
     ({"x": True, "y": 2, "power_w": 1}, "must be numbers"),
     ({"x": 1, "y": 2, "power_w": -1}, "power and height >= 0"),
+    ({"x": 1, "y": 2, "power_w": 1001}, "power at most 1000 W"),
     ({"x": float("inf"), "y": 2, "power_w": 1}, "must be finite"),
 ])
 def test_a_bad_request_body_is_refused_with_one_line(body, reason):
