@@ -42,7 +42,7 @@ from shared.networks import SinrMapNetwork, WeightsError, load_network
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting
 from shared.policy import LookaheadPolicy, RasterMap, sinr_network_raster
-from shared.scenario import Scenario
+from shared.scenario import MAX_UAVS, Scenario
 from shared.shipped import NoSurveyMapError, sinr_map_for, value_net_for
 from world_sim.core import VectorWorld
 
@@ -168,6 +168,22 @@ def transient_episodes(schedule: JammerSchedule, start_version: np.ndarray) -> n
     return transient
 
 
+def _check_counts(scenario: Scenario, **counts: int | None) -> None:
+    """The run's scenario and counts, refused in one line here rather than deep inside numpy:
+    each count an integer (bool aside), ``seed`` from 0, ``uavs`` from 1 to MAX_UAVS, the
+    rest from 1; None leaves a count to its default."""
+    if not isinstance(scenario, Scenario):
+        raise EvaluationError(f"scenario {scenario!r}: expected a Scenario (load_scenario)")
+    for name, value in counts.items():
+        if value is None and name in ("uavs", "swap_every"):
+            continue
+        low, high = (0, None) if name == "seed" else (1, MAX_UAVS if name == "uavs" else None)
+        if (isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low
+                or (high is not None and value > high)):
+            bound = f"from {low}" + ("" if high is None else f" to {high}")
+            raise EvaluationError(f"{name} {value!r}: expected an integer {bound}")
+
+
 def evaluate(
     scenario: Scenario,
     method: str,
@@ -189,6 +205,10 @@ def evaluate(
     cloud's measurement memory of a ``proposed`` run (a scratch directory otherwise)."""
     if method not in METHODS:
         raise EvaluationError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    _check_counts(scenario, episodes=episodes, seed=seed, uavs=uavs, swap_every=swap_every)
+    if jammer is not None and not isinstance(jammer, JammerSetting):
+        raise EvaluationError(f"jammer {jammer!r}: expected a JammerSetting(x, y, power_w) or "
+                              "None")
     schedule = swapping_jammers(scenario, jammer, swap_every, seed)
     online = None
     with tempfile.TemporaryDirectory(prefix="jamnav-eval-") as scratch:

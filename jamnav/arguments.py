@@ -14,9 +14,6 @@ class UsageError(Exception):
     """A problem with the user's input, reported as one line (exit 2)."""
 
 
-# Negative seeds fail deep in numpy; torch refuses seeds past 64 bits, and training adds
-# offsets to its seed, so stay well clear at 32 bits (numpy's legacy seed range).
-SEED_MAX = 2**32 - 1
 
 
 def check_range(

@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -18,7 +20,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from jamnav.arguments import (
-    SEED_MAX,
     UsageError,
     check_fleet,
     check_range,
@@ -31,6 +32,7 @@ from jamnav.cli_runtime import register as register_runtime
 from shared.radio import RadioModel
 from shared.scenario import (
     MAX_UAVS,
+    SEED_MAX,
     Scenario,
     ScenarioError,
     load_scenario,
@@ -757,6 +759,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("jamnav: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # The reader went away (`jamnav sinr ... | head -1`): nothing is wrong. stdout now
+        # goes nowhere, so that the interpreter's last flush does not fail again; the exit
+        # status is a shell's for a writer a closed pipe stopped.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
 
 
 if __name__ == "__main__":

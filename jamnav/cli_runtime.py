@@ -20,7 +20,6 @@ import time
 from pathlib import Path
 
 from jamnav.arguments import (
-    SEED_MAX,
     UsageError,
     check_fleet,
     check_range,
@@ -32,6 +31,7 @@ from shared.scenario import (
     MAX_JAMMER_HEIGHT_M,
     MAX_JAMMER_POWER_W,
     MAX_UAVS,
+    SEED_MAX,
     ScenarioError,
     load_scenario,
 )

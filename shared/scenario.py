@@ -29,6 +29,9 @@ DEFAULT_SCENARIO = "icc2021"
 # The most UAVs one episode flies: what the world, the lookahead and the bus messages are sized
 # for (the city scenario at 1,024 UAVs is benchmarks/bench_scale.py's largest case).
 MAX_UAVS = 1024
+# Negative seeds fail deep in numpy; torch refuses seeds past 64 bits, and training adds
+# offsets to its seed, so stay well clear at 32 bits (numpy's legacy seed range).
+SEED_MAX = 2**32 - 1
 # The strongest and highest jammer a scenario or a live command may set: a thousand times the
 # GBSs' 1 W and twenty times the UAVs' altitude are far past anything the maps are made for;
 # beyond them a typing slip (1e30 W) would turn the whole area off without a word.

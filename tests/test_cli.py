@@ -83,3 +83,12 @@ def test_console_script_reports_errors_without_traceback():
     )
     assert result.returncode == 2
     assert "Traceback" not in result.stderr and "jamnav: error" in result.stderr
+
+
+def test_a_reader_that_goes_away_ends_the_output_without_a_traceback():
+    """``jamnav scenario show | head -1``: the pipe is closed before the command writes."""
+    process = subprocess.Popen([sys.executable, "-m", "jamnav.cli", "scenario", "show"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process.stdout.close()
+    err = process.stderr.read().decode()
+    assert process.wait(60) == 141 and err == ""

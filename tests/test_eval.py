@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from cloud_service.evaluation import evaluate
+from cloud_service.evaluation import EvaluationError, evaluate
 from cloud_service.rollout import StraightController, run_episodes
 from jamnav.cli import main
 from shared.paper import TABLE_I_JAMMERS, JammerSetting
@@ -19,6 +19,32 @@ from shared.shipped import value_net_path
 def run_json(capsys, *argv):
     assert main(["eval", "--json", *argv]) == 0
     return json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.parametrize(("changes", "message"), [
+    ({"episodes": 0}, "episodes 0: expected an integer from 1"),
+    ({"episodes": 1.5}, "episodes 1.5: expected an integer"),
+    ({"episodes": "2"}, "episodes '2': expected an integer"),
+    ({"seed": -1}, "seed -1: expected an integer from 0"),
+    ({"uavs": 0}, "uavs 0: expected an integer from 1 to 1024"),
+    ({"uavs": "4"}, "uavs '4'"),
+    ({"swap_every": 0}, "swap_every 0"),
+    ({"jammer": (0, 0, 1)}, "expected a JammerSetting"),
+    ({"scenario": "icc2021"}, "expected a Scenario"),
+])
+def test_evaluate_refuses_bad_arguments_in_one_line(changes, message):
+    arguments = {"scenario": load_scenario(), "method": "straight", "episodes": 1, "seed": 0,
+                 "jammer": None, **changes}
+    with pytest.raises(EvaluationError, match=message) as refused:
+        evaluate(**arguments)
+    assert "\n" not in str(refused.value)
+
+
+def test_a_jammer_that_is_not_finite_is_refused_where_it_enters_the_world():
+    with pytest.raises(ValueError, match="must be finite"):
+        evaluate(load_scenario(), "straight", 1, 0, JammerSetting(math.nan, 0.0, 1.0))
+    with pytest.raises(ValueError, match="power and height >= 0"):
+        evaluate(load_scenario(), "straight", 1, 0, JammerSetting(0.0, 0.0, -1.0))
 
 
 def test_rates_add_up_and_per_episode_is_reproducible(capsys):

@@ -143,11 +143,40 @@ def test_hovering_times_out_and_jammer_option():
         env.reset(options={"jammer": (0.0, 0.0)})
 
 
-def test_invalid_action_rejected():
+@pytest.mark.parametrize("action", [46, -1, 1.5, 1.0, float("nan"), float("inf"), None, "1",
+                                    True, [1], np.array([1, 2]), np.float64(2.0)])
+def test_an_invalid_action_is_refused_naming_the_agent_and_the_space(action):
     env = parallel_env()
     env.reset(seed=0)
-    with pytest.raises(ValueError):
-        env.step({"uav_0": len(env.action_set)})
+    before = env.world.position.copy()
+    with pytest.raises(ValueError, match=r"uav_1: action .* is not in Discrete\(46\)"):
+        env.step({"uav_0": 0, "uav_1": action})
+    assert np.array_equal(env.world.position, before)  # nothing moved
+
+
+@pytest.mark.parametrize("action", [3, np.int64(3), np.array(3)])
+def test_every_integer_form_of_an_action_flies_the_same(action):
+    env = parallel_env()
+    env.reset(seed=0)
+    plain = env.step({"uav_0": 3})[0]["uav_0"]
+    env.reset(seed=0)
+    assert np.array_equal(env.step({"uav_0": action})[0]["uav_0"], plain)
+
+
+def test_bad_seeds_options_and_arguments_are_refused():
+    env = parallel_env()
+    for seed in (1.5, -1, 2**32, "3", True):
+        with pytest.raises(ValueError, match="seed"):
+            env.reset(seed=seed)
+    with pytest.raises(ValueError, match="expected a dict"):
+        env.reset(options=[1])
+    env.reset(seed=0)
+    with pytest.raises(TypeError, match="expected a dict"):
+        env.step([1, 1, 1, 1])
+    with pytest.raises(TypeError, match="scenario 5"):
+        parallel_env(5)
+    with pytest.raises(TypeError, match="num_uavs"):
+        parallel_env(num_uavs=2.5)
 
 
 def test_rgb_render():

@@ -184,6 +184,12 @@ class VectorWorld:
         if jammer is None:
             self.jammer_power[env_ids] = 0.0
             return
+        # A NaN SINR would read as the best level (levels are found by sorting): refused
+        # here, where every caller's jammer enters the world.
+        if not all(np.isfinite(value).all() for value in jammer) or (
+                np.min(jammer.power_w) < 0 or np.min(jammer.height_m) < 0):
+            raise ValueError(f"jammer {tuple(jammer)}: position, power and height must be "
+                             "finite, power and height >= 0")
         self.jammer_x[env_ids] = jammer.x
         self.jammer_y[env_ids] = jammer.y
         self.jammer_power[env_ids] = jammer.power_w

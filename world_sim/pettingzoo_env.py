@@ -51,12 +51,19 @@ from pettingzoo import ParallelEnv
 
 from shared.outcomes import Outcome
 from shared.radio import JammerParams
-from shared.scenario import Scenario, load_scenario
+from shared.scenario import SEED_MAX, Scenario, load_scenario
 from world_sim.core import VectorWorld, episode_seed
 
 OWN_FEATURES = 10
 OTHER_FEATURES = 6
 _TERMINATING = (int(Outcome.SUCCESS), int(Outcome.DISCONNECTION), int(Outcome.COLLISION))
+
+
+def _is_integer(value: Any) -> bool:
+    """An int, a numpy integer or a 0-d integer array; never a bool, float or string."""
+    if isinstance(value, np.ndarray):
+        return value.ndim == 0 and np.issubdtype(value.dtype, np.integer)
+    return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_)
 
 
 def parallel_env(
@@ -81,8 +88,13 @@ class JamnavParallelEnv(ParallelEnv):
         num_uavs: int | None = None,
         render_mode: str | None = None,
     ):
+        if not isinstance(scenario, Scenario | str | Path | None):
+            raise TypeError(f"scenario {scenario!r}: expected a Scenario, a scenario name or "
+                            "a TOML path")
         if not isinstance(scenario, Scenario):
             scenario = load_scenario(scenario)
+        if num_uavs is not None and not _is_integer(num_uavs):
+            raise TypeError(f"num_uavs {num_uavs!r}: expected an integer")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode {render_mode!r} not in {self.metadata['render_modes']}")
         self.scenario = scenario
@@ -131,6 +143,8 @@ class JamnavParallelEnv(ParallelEnv):
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
         if seed is not None:
+            if not _is_integer(seed) or not 0 <= seed <= SEED_MAX:
+                raise ValueError(f"seed {seed!r}: expected an integer from 0 to {SEED_MAX}")
             self.master_seed = int(seed)
             self._episode = 0
         elif self.master_seed is None:
@@ -138,6 +152,10 @@ class JamnavParallelEnv(ParallelEnv):
             self._episode = 0
         else:
             self._episode += 1
+        # Other keys are ignored, as PettingZoo's API test expects of every environment.
+        if options is not None and not isinstance(options, dict):
+            raise ValueError(f"options {options!r}: expected a dict such as "
+                             "{'jammer': (x, y, power_w)}")
         if options and "jammer" in options:
             self.world.set_jammer(0, self._jammer_from(options["jammer"]))
         self.world.reset([0], [episode_seed(self.master_seed, self._episode)])
@@ -170,6 +188,9 @@ class JamnavParallelEnv(ParallelEnv):
         dict[str, bool],
         dict[str, dict[str, Any]],
     ]:
+        if not isinstance(actions, dict):
+            raise TypeError(f"actions: expected a dict of agent -> action, got "
+                            f"{type(actions).__name__}")
         if not self.agents:
             return {}, {}, {}, {}, {}
         world = self.world
@@ -181,9 +202,9 @@ class JamnavParallelEnv(ParallelEnv):
                 raise KeyError(f"unknown agent {agent!r}")
             if agent not in self.agents:
                 continue  # finished agents stay put whatever they are told
-            a = int(action)
-            if not 0 <= a < len(self.action_set) or a != action:
+            if not _is_integer(action) or not 0 <= action < len(self.action_set):
                 raise ValueError(f"{agent}: action {action!r} is not in {self.action_space(agent)}")
+            a = int(action)
             speed[0, j] = self.action_set.speeds[a]
             heading[0, j] += self.action_set.turns[a]
         result = world.step(speed, heading)
