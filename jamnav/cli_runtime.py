@@ -241,6 +241,9 @@ def _describe(status) -> str:
     return ""
 
 
+STATUS_ROLES = ("world", "cloud", "agent")  # the processes that answer a status query
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     from shared import access, bus
     from shared.messages import MessageError, ProcessStatus, decode
@@ -262,10 +265,16 @@ def cmd_status(args: argparse.Namespace) -> int:
                 statuses[(status.role, status.ident)] = status
     if not live:
         raise bus.BusError(f"no live process of {topics.prefix!r} at {endpoint}")
+    # A process whose token is live but that does not answer is frozen or swamped: said, as
+    # it would otherwise read as healthy.
+    silent = {(role, ident) for role, ident in live
+              if role in STATUS_ROLES and (role, ident) not in statuses}
     if args.json:
         print(json.dumps([{"role": role, "id": ident, **(
             statuses[(role, ident)].model_dump(mode="json", exclude={"role", "ident"})
-            if (role, ident) in statuses else {})} for role, ident in live]))
+            if (role, ident) in statuses else {}),
+            **({"answering": (role, ident) not in silent} if role in STATUS_ROLES else {})}
+            for role, ident in live]))
         return 0
     order = {"router": 0, "world": 1, "cloud": 2, "agent": 3}
     live = sorted(live, key=lambda k: (order.get(k[0], 9), k[0], int(k[1])
@@ -276,8 +285,9 @@ def cmd_status(args: argparse.Namespace) -> int:
             continue
         status = statuses.get((role, ident))
         pid = status.pid if status else ""
-        print(f"{role + '-' + ident:<12} {pid!s:>7}  live  "
-              f"{_describe(status) if status else ''}".rstrip())
+        about = (_describe(status) if status else "not answering its status query (frozen "
+                 "or swamped)" if (role, ident) in silent else "")
+        print(f"{role + '-' + ident:<12} {pid!s:>7}  live  {about}".rstrip())
     if len(agents) > AGENT_LINES:
         print(_describe_agents(agents, statuses))
     return 0

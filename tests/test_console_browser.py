@@ -29,11 +29,11 @@ from tests import browser as chromium
 from tests.support import free_endpoint, gone, wait_until
 
 
-def http(url: str, body: dict | None = None) -> tuple[int, dict]:
-    """(status, JSON body) of a GET, or of a POST of ``body`` as JSON."""
-    request = urllib.request.Request(
-        url, data=None if body is None else json.dumps(body).encode(),
-        headers={"Content-Type": "application/json"})
+def http(url: str, body: dict | bytes | None = None) -> tuple[int, dict]:
+    """(status, JSON body) of a GET, or of a POST of ``body`` as JSON (bytes: as they are)."""
+    data = body if body is None or isinstance(body, bytes) else json.dumps(body).encode()
+    request = urllib.request.Request(url, data=data,
+                                     headers={"Content-Type": "application/json"})
     try:
         with urllib.request.urlopen(request, timeout=10) as response:
             return response.status, json.loads(response.read())
@@ -100,6 +100,9 @@ def test_the_console_shows_the_live_system_and_moves_the_jammer(supervisor, caps
         status, reply = http(f"{base}{path}", body)
         assert status == 401 and "token" in reply["error"]
     assert http(f"{base}api/jammer?token=wrong", {"x": 0, "y": 0, "power_w": 5})[0] == 401
+    # A few kB of nested brackets exhaust the JSON decoder's stack: a 400, not a 500.
+    status, reply = http(f"{base}api/jammer?token={token}", b"[" * 3000 + b"]" * 3000)
+    assert status == 400 and reply["error"] == "JSON nested too deeply"
     assert jammer_in_force() is None
 
     with sync_playwright() as playwright:

@@ -49,6 +49,9 @@ def test_killed_cloud_comes_back_with_its_memory_and_no_measurement_is_lost(
     # out, are sent again, and the frozen cloud later takes both copies), then it dies.
     os.kill(cloud["pid"], signal.SIGSTOP)
     time.sleep(RECEIPT_TIMEOUT_S + 1.5)
+    # Frozen, its token is still live: status says it does not answer, not that it is well.
+    frozen = next(p for p in statuses(capsys, endpoint) if p["role"] == "cloud")
+    assert frozen == {"role": "cloud", "id": "0", "answering": False}
     os.kill(cloud["pid"], signal.SIGCONT)
     time.sleep(1.0)
     os.kill(cloud["pid"], signal.SIGKILL)

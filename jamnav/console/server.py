@@ -87,6 +87,8 @@ def _jammer_desk(feed: Feed):
             command = jammer_request(json.loads(await request.text()))
         except ValueError as exc:  # JSON errors included
             return _error(400, " ".join(str(exc).split()))
+        except RecursionError:  # a few kB of nested brackets exhaust the JSON decoder's stack
+            return _error(400, "JSON nested too deeply")
         try:
             reply = await asyncio.to_thread(feed.command, command)
         except bus.QueryRefused as exc:
