@@ -463,8 +463,13 @@ class Supervisor:
         if now - self._last_draw < (0.25 if self.interactive else 5.0):
             return
         self._last_draw = now
+        recorder = self.children.get("recorder-0")
+        own_recorder = None if recorder is None or recorder.process is None else (
+            f"recorder-{recorder.process.pid}")
         with self._live_lock:
-            live = len(self.live)
+            # A recorder started by hand against this system is live too, but not the run's.
+            live = sum(1 for name in self.live
+                       if not name.startswith("recorder-") or name == own_recorder)
         expected = self.config.uavs + 2 + self.config.routers + (self.config.record is not None)
         if self.state is None:
             line = f"starting: {live}/{expected} processes live"
@@ -472,9 +477,11 @@ class Supervisor:
             s = self.state
             uavs = fleet_line(s)
             rate = self.world_status.details.get("steps_per_second") if self.world_status else 0
+            cloud = self.cloud_status
+            maps = mapper_summary(cloud) if self.config.map == "online" else (
+                f"map {self.config.map}" + (f" v{cloud.sinr_version}" if cloud else ""))
             line = (f"ep {s.episode} step {s.step:3d} | {len(self.outcomes)} done | "
-                    f"{rate or 0:.0f} steps/s | {mapper_summary(self.cloud_status)} | {uavs} | "
-                    f"live {live}/{expected}")
+                    f"{rate or 0:.0f} steps/s | {maps} | {uavs} | live {live}/{expected}")
         if self.interactive:
             self.stream.write("\r\x1b[2K" + line[:160])
         else:
@@ -620,6 +627,9 @@ class Supervisor:
             "missed_deadlines": (self.finished or details).get("missed_deadlines"),
             "events": self.events,
             "restarts": restarts,
+            # Which processes, as the live output named them when they died.
+            "restarted": {child.name: child.restarts for child in self.children.values()
+                          if child.restarts},
             "dropped_messages": dict(dropped),
             "versions": {f"{s.role}-{s.ident}": {"value": s.value_version, "sinr": s.sinr_version}
                          for s in statuses if s.role in ("cloud", "agent")},
@@ -735,9 +745,10 @@ def summary_table(report: dict[str, Any]) -> str:
                     + ("" if missed is None else f", {missed} missed deadlines"))
     if agents := report.get("agents"):
         rows.append(f"  agents         {agents_line(agents)}")
-    restarts = {k: v for k, v in report["restarts"].items() if v}
-    rows.append("  restarts       " + (", ".join(f"{k} {v}" for k, v in restarts.items())
-                                       or "none"))
+    restarted = report.get("restarted", {})
+    rows.append("  restarts       " + (", ".join(
+        f"{name} {'once' if times == 1 else f'{times} times'}"
+        for name, times in restarted.items()) or "none"))
     dropped = report["dropped_messages"]
     rows.append("  dropped        " + (", ".join(f"{k} {v}" for k, v in dropped.items())
                                        or "none"))

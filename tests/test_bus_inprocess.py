@@ -82,9 +82,13 @@ def test_jammer_control_replies_and_invalid_messages_are_refused_and_counted(sce
         assert off.accepted and off.jammer is None
         wait_until(lambda: len(system.of_type("jammer_changed")) == 2, 10)
         assert system.of_type("jammer_changed")[-1].jammer is None
+        # Switching off what is off, or setting what is set, is accepted and changes nothing.
+        assert system.jammer(JammerCommand(action="off")).accepted
+        assert system.jammer(JammerCommand(action="set", x=1.0, y=1.0, power_w=0.0)).accepted
 
         # The true map follows both changes: versions 2 and 3 reach every agent.
         wait_until(lambda: all(a.models.sinr_version == 3 for a in system.agents), 20)
+        assert len(system.of_type("jammer_changed")) == 2
 
         session = system.sessions[0]
         session.put(system.topics.action(0), b"\x93\x01\x02")  # msgpack, but not a map

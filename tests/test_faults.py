@@ -142,6 +142,7 @@ def test_a_killed_agent_leaves_its_outbox_to_the_next_and_ctrl_c_stores_everythi
     report = json.loads((run_dir / "report.json").read_text())
     assert report["stopped_by"] == "signal"
     assert report["restarts"] == {"router": 0, "world": 0, "cloud": 0, "agent": 1}
+    assert report["restarted"] == {"agent-1": 1}
     counts = report["measurements"]
     assert counts["buffered"] == counts["overflowed"] == counts["refused"] == 0
     assert counts["in_memory"] == counts["taken"] == counts["acknowledged"]

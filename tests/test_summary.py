@@ -42,6 +42,11 @@ def test_an_early_ctrl_c_prints_words_not_none():
     assert "restarts       none" in text and "value network extended" in text
 
 
+def test_restarts_name_the_processes_that_restarted():
+    text = summary_table(_report(restarted={"agent-2": 1, "cloud": 3}))
+    assert "restarts       agent-2 once, cloud 3 times" in text
+
+
 def test_rates_are_rounded_and_a_swap_splits_success_by_hand():
     outcomes = {0: ["success"] * 4, 1: ["success", "success", "success", "disconnection"],
                 2: ["success", "collision", "timeout", "disconnection"],
@@ -58,11 +63,12 @@ def test_rates_are_rounded_and_a_swap_splits_success_by_hand():
     text = summary_table(_report(
         episodes=4, success_rate=12 / 16, disconnection_rate=2 / 16, collision_rate=1 / 16,
         timeout_rate=1 / 16, swap=swap, steps_per_second=19.98765, missed_deadlines=0,
-        events=events, restarts={"router": 0, "world": 0, "cloud": 0, "agent": 2}))
+        events=events, restarts={"router": 0, "world": 0, "cloud": 0, "agent": 2},
+        restarted={"agent-3": 2}))
     assert "success 75.0%, disconnection 12.5%, collision 6.2%, timeout 6.2%" in text
     assert ("87.5% before the jammer changed (2 episodes), 62.5% from episode 2 on "
             "(2 episodes)") in text
-    assert "20 steps/s, 0 missed deadlines" in text and "restarts       agent 2" in text
+    assert "20 steps/s, 0 missed deadlines" in text and "restarts       agent-3 2 times" in text
     assert "jammer moved to (25, -10), 1 W (episode 2, step 7)" in text
     assert "jammer switched off (episode 3, step 1)" in text
     assert "None" not in text

@@ -184,7 +184,9 @@ class JammerDesk:
                 jammer = JammerInfo(x=command.x, y=command.y, power_w=command.power_w,
                                     height_m=height)
             with self._lock:
-                self._pending.append(jammer)
+                in_force = self._pending[-1] if self._pending else self._current
+                if jammer != in_force:  # what is in force already changes nothing, says nothing
+                    self._pending.append(jammer)
         query.reply(self.key, encode(self._reply(reason is None, reason)))
 
     def _reply(self, accepted: bool, reason: str | None) -> JammerReply:
