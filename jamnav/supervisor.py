@@ -625,6 +625,8 @@ class Supervisor:
             else self.first_step - self.launched_at,
             "steps_per_second": (self.finished or details).get("steps_per_second"),
             "missed_deadlines": (self.finished or details).get("missed_deadlines"),
+            # UAV-steps flown on at the last velocity while their agent was dead or restarting.
+            "unattended_steps": details.get("unattended_steps"),
             "events": self.events,
             "restarts": restarts,
             # Which processes, as the live output named them when they died.
@@ -741,8 +743,10 @@ def summary_table(report: dict[str, Any]) -> str:
                     f"on ({swap['after']['episodes']} episodes)")
     if (sps := report["steps_per_second"]) is not None:
         missed = report["missed_deadlines"]
+        unattended = report.get("unattended_steps")
         rows.append(f"  pace           {sps:.0f} steps/s"
-                    + ("" if missed is None else f", {missed} missed deadlines"))
+                    + ("" if missed is None else f", {missed} missed deadlines")
+                    + (f", {unattended} UAV-steps without a live agent" if unattended else ""))
     if agents := report.get("agents"):
         rows.append(f"  agents         {agents_line(agents)}")
     restarted = report.get("restarted", {})

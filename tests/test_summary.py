@@ -69,6 +69,9 @@ def test_rates_are_rounded_and_a_swap_splits_success_by_hand():
     assert ("87.5% before the jammer changed (2 episodes), 62.5% from episode 2 on "
             "(2 episodes)") in text
     assert "20 steps/s, 0 missed deadlines" in text and "restarts       agent-3 2 times" in text
+    assert "without a live agent" not in text
+    assert "20 steps/s, 0 missed deadlines, 7 UAV-steps without a live agent" in summary_table(
+        _report(steps_per_second=20.0, missed_deadlines=0, unattended_steps=7))
     assert "jammer moved to (25, -10), 1 W (episode 2, step 7)" in text
     assert "jammer switched off (episode 3, step 1)" in text
     assert "None" not in text
