@@ -246,9 +246,11 @@ def test_up_secure_flies_like_eval_and_needs_the_credentials(supervisor, capsys,
     code, out, _ = run_cli(capsys, "jammer", "show", "--credentials", credentials,
                            "--endpoint", endpoint)
     assert code == 0 and json.loads(out)["jammer"]["x"] == 0.0
-    # Setting the jammer in force again changes no outcome, but goes the whole way: world ->
-    # event -> cloud -> new true map -> every agent.
-    code, out, _ = run_cli(capsys, "jammer", "set", "0,0,1",
+    # A jammer a micrometre higher than the one in force (30 m) is a change, which goes the
+    # whole way: world -> event -> cloud -> new true map -> every agent; but no level can
+    # tell it apart (the SINR moves by under 1e-6 dB), so no outcome changes. Setting the
+    # jammer in force itself would change nothing, and say nothing.
+    code, out, _ = run_cli(capsys, "jammer", "set", "0,0,1,30.000001",
                            "--credentials", credentials, "--endpoint", endpoint)
     assert code == 0 and json.loads(out)["accepted"]
     wait_until(lambda: [p.get("sinr_version") for p in status()
