@@ -180,6 +180,11 @@ class WorldState(Message):
     status: list[StatusLabel] = Field(max_length=MAX_UAVS)
     # Where each UAV is headed this episode (empty from a world that does not say).
     destination: list[XY] = Field(default_factory=list, max_length=MAX_UAVS)
+    # The jammer in force after the step (None: none), so that a console that joins late, or
+    # a replay of a recording begun mid-run, knows it from any state. ``jammer_known`` is
+    # False from a world that does not say (recordings made before it did).
+    jammer_in_force: JammerInfo | None = None
+    jammer_known: bool = False
 
 
 # -- measurements and weights -------------------------------------------------------------------

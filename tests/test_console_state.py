@@ -26,6 +26,8 @@ from shared.messages import (
     SinrMap,
     UavOutcomes,
     WorldState,
+    decode,
+    encode,
 )
 from shared.networks import sha256
 from shared.radio import RadioModel
@@ -94,6 +96,20 @@ def test_events_count_outcomes_once_follow_the_jammer_and_fill_the_timeline():
         (2, "change_detected", T + 2, "change detected: map v3 right on 80% of recent uploads")]
     state.on_event(JammerChanged(t=T + 4, source="world", episode=3, step=0, jammer=None))
     assert state.snapshot()["jammer"] is None and state.jammer_known
+
+
+def test_the_world_state_says_which_jammer_is_in_force_and_an_older_one_says_nothing():
+    state = ConsoleState()
+    state.on_world_state(world_state(0, 1, [(0.0, 0.0)]))  # a recording from before it said
+    assert not state.jammer_known
+    jammer = JammerInfo(x=25, y=-10, power_w=1, height_m=30)
+    said = world_state(0, 2, [(0.0, 0.0)]).model_copy(
+        update={"jammer_in_force": jammer, "jammer_known": True})
+    state.on_world_state(decode(WorldState, encode(said)))  # as it comes over the wire
+    assert state.current_jammer() == (True, jammer)
+    state.on_world_state(world_state(0, 3, [(0.0, 0.0)]).model_copy(
+        update={"jammer_known": True}))
+    assert state.current_jammer() == (True, None)
 
 
 def test_the_frame_keeps_the_newest_timeline_entries_and_is_encoded_once_per_change():

@@ -65,6 +65,11 @@ def test_a_recording_holds_the_events_and_outcomes_of_the_live_run(recorded_run)
         assert {f"jamnav/uav/{uav}/observation", f"jamnav/uav/{uav}/action"} <= keys
     assert {"jamnav/world/state", "jamnav/cloud/weights/value",
             "jamnav/cloud/weights/sinr_map"} <= keys
+    # Every state says which jammer is in force (the scenario's), so that a replay of any
+    # stretch of the recording shows it.
+    jammer = {"x": 0.0, "y": 0.0, "power_w": 1.0, "height_m": 30.0}
+    assert all(item.message.jammer_known and item.message.jammer_in_force.model_dump() == jammer
+               for item in items if item.key == "jamnav/world/state")
     # Every step the world flew was recorded from the first: one action per observation.
     observations = [item.message for item in items if item.key.endswith("/observation")]
     assert min(o.step for o in observations if o.episode == 0) == 0

@@ -193,6 +193,11 @@ class JammerDesk:
         return JammerReply(accepted=accepted, reason=reason, jammer=self.current(),
                            episode=self.episode, step=self.step)
 
+    def in_force(self) -> JammerInfo | None:
+        """The jammer the world flies with now (accepted commands wait for the next step)."""
+        with self._lock:
+            return self._current
+
     def take(self) -> list[JammerInfo | None]:
         """The commands accepted since the last call, in order."""
         with self._lock:
@@ -389,7 +394,8 @@ class WorldService:
             velocity=[tuple(v) for v in w.velocity[0].tolist()],
             sinr_db=w.sinr_db[0].tolist(), level=w.level[0].tolist(),
             status=outcome_labels(w.status[0]),
-            destination=[tuple(d) for d in w.destination[0].tolist()])))
+            destination=[tuple(d) for d in w.destination[0].tolist()],
+            jammer_in_force=self.desk.in_force(), jammer_known=True)))
 
     def _commands(self, actions: dict[int, Action], active: set[int]
                   ) -> tuple[np.ndarray, np.ndarray]:

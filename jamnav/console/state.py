@@ -63,6 +63,8 @@ class ConsoleState:
                     trail.append(here)
             self.episode, self.step, self.clock = state.episode, state.step, state.clock
             self._state = state
+            if state.jammer_known:
+                self._follow_jammer(state.jammer_in_force)
             self.revision += 1
 
     def on_event(self, event) -> None:
@@ -83,9 +85,12 @@ class ConsoleState:
     def on_jammer(self, jammer: JammerInfo | None) -> None:
         """The jammer in force, as the world answered a command or a ``show``."""
         with self._lock:
-            if not self.jammer_known or jammer != self.jammer:
-                self.jammer, self.jammer_known = jammer, True
-                self.revision += 1
+            self._follow_jammer(jammer)
+
+    def _follow_jammer(self, jammer: JammerInfo | None) -> None:
+        if not self.jammer_known or jammer != self.jammer:
+            self.jammer, self.jammer_known = jammer, True
+            self.revision += 1
 
     def on_estimate(self, estimate: JammerEstimate) -> None:
         with self._lock:
