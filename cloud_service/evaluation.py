@@ -168,20 +168,12 @@ def transient_episodes(schedule: JammerSchedule, start_version: np.ndarray) -> n
     return transient
 
 
-def _check_counts(scenario: Scenario, **counts: int | None) -> None:
-    """The run's scenario and counts, refused in one line here rather than deep inside numpy:
-    each count an integer (bool aside), ``seed`` from 0, ``uavs`` from 1 to MAX_UAVS, the
-    rest from 1; None leaves a count to its default."""
-    if not isinstance(scenario, Scenario):
-        raise EvaluationError(f"scenario {scenario!r}: expected a Scenario (load_scenario)")
-    for name, value in counts.items():
-        if value is None and name in ("uavs", "swap_every"):
-            continue
-        low, high = (0, None) if name == "seed" else (1, MAX_UAVS if name == "uavs" else None)
-        if (isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low
-                or (high is not None and value > high)):
-            bound = f"from {low}" + ("" if high is None else f" to {high}")
-            raise EvaluationError(f"{name} {value!r}: expected an integer {bound}")
+def _check_integer(name: str, value: Any, low: int, high: int | None = None) -> None:
+    """A count or seed refused in one line here rather than deep inside numpy."""
+    if (isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low
+            or (high is not None and value > high)):
+        bound = f"from {low}" + ("" if high is None else f" to {high}")
+        raise EvaluationError(f"{name} {value!r}: expected an integer {bound}")
 
 
 def evaluate(
@@ -205,7 +197,14 @@ def evaluate(
     cloud's measurement memory of a ``proposed`` run (a scratch directory otherwise)."""
     if method not in METHODS:
         raise EvaluationError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
-    _check_counts(scenario, episodes=episodes, seed=seed, uavs=uavs, swap_every=swap_every)
+    if not isinstance(scenario, Scenario):
+        raise EvaluationError(f"scenario {scenario!r}: expected a Scenario (load_scenario)")
+    _check_integer("episodes", episodes, 1)
+    _check_integer("seed", seed, 0)
+    if uavs is not None:
+        _check_integer("uavs", uavs, 1, MAX_UAVS)
+    if swap_every is not None:
+        _check_integer("swap_every", swap_every, 1)
     if jammer is not None and not isinstance(jammer, JammerSetting):
         raise EvaluationError(f"jammer {jammer!r}: expected a JammerSetting(x, y, power_w) or "
                               "None")

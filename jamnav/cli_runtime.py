@@ -26,10 +26,8 @@ from jamnav.arguments import (
     output_path,
     survey_map_argument,
 )
-from shared.messages import JammerCommand, mapper_summary
+from shared.messages import JAMMER_LIMITS, JammerCommand, mapper_summary
 from shared.scenario import (
-    MAX_JAMMER_HEIGHT_M,
-    MAX_JAMMER_POWER_W,
     MAX_UAVS,
     SEED_MAX,
     ScenarioError,
@@ -195,9 +193,7 @@ def jammer_command(action: str, numbers: tuple | None = None, what: str = ""
     try:
         return JammerCommand(action="set", x=x, y=y, power_w=power, height_m=height)
     except ValueError:
-        raise UsageError(f"jammer set {what}: position, power and height must be finite, "
-                         f"power and height >= 0, power at most {MAX_JAMMER_POWER_W:g} W and "
-                         f"height at most {MAX_JAMMER_HEIGHT_M:g} m") from None
+        raise UsageError(f"jammer set {what}: {JAMMER_LIMITS}") from None
 
 
 def cmd_jammer(args: argparse.Namespace) -> int:

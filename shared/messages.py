@@ -257,6 +257,11 @@ class SinrMap(_Weights):
 
 
 # -- jammer control -----------------------------------------------------------------------------
+# What every jammer a command or message sets must be (JammerPower, JammerHeight).
+JAMMER_LIMITS = (f"position, power and height must be finite, power and height >= 0, power at "
+                 f"most {MAX_JAMMER_POWER_W:g} W and height at most {MAX_JAMMER_HEIGHT_M:g} m")
+
+
 class JammerInfo(Message):
     x: Finite
     y: Finite
@@ -271,9 +276,7 @@ class JammerInfo(Message):
             return cls(x=x, y=y, power_w=power,
                        height_m=default_height if height is None else height)
         except ValidationError:
-            raise ValueError(f"jammer {text!r}: expected finite numbers, power 0 to "
-                             f"{MAX_JAMMER_POWER_W:g} W and height 0 to {MAX_JAMMER_HEIGHT_M:g} "
-                             "m") from None
+            raise ValueError(f"jammer {text!r}: {JAMMER_LIMITS}") from None
 
     @staticmethod
     def params(jammer: JammerInfo | None) -> JammerParams | None:

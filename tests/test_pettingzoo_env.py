@@ -170,6 +170,9 @@ def test_bad_seeds_options_and_arguments_are_refused():
             env.reset(seed=seed)
     with pytest.raises(ValueError, match="expected a dict"):
         env.reset(options=[1])
+    for jammer in ((float("nan"), 0.0, 1.0), (0.0, 0.0, -1.0)):
+        with pytest.raises(ValueError, match="must be finite, power and height >= 0"):
+            env.reset(options={"jammer": jammer})
     env.reset(seed=0)
     with pytest.raises(TypeError, match="expected a dict"):
         env.step([1, 1, 1, 1])

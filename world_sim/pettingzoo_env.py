@@ -175,8 +175,7 @@ class JamnavParallelEnv(ParallelEnv):
             raise ValueError(
                 f"options['jammer'] must be (x, y, power_w) or None, got {value!r}"
             ) from None
-        if not all(math.isfinite(v) for v in (x, y, power_w)) or power_w < 0:
-            raise ValueError(f"options['jammer'] needs finite x, y and power_w >= 0: {value!r}")
+        # VectorWorld.set_jammer refuses what is not finite or of negative power.
         return JammerParams(x, y, power_w, self.scenario.jammer.height_m)
 
     def step(

@@ -160,8 +160,12 @@ class JammerDesk:
         self.step = 0
 
     def current(self) -> JammerInfo | None:
+        """The jammer once every accepted command is applied."""
         with self._lock:
-            return self._pending[-1] if self._pending else self._current
+            return self._accepted_last()
+
+    def _accepted_last(self) -> JammerInfo | None:
+        return self._pending[-1] if self._pending else self._current
 
     def handle(self, query: zenoh.Query) -> None:
         payload = query.payload
@@ -184,8 +188,7 @@ class JammerDesk:
                 jammer = JammerInfo(x=command.x, y=command.y, power_w=command.power_w,
                                     height_m=height)
             with self._lock:
-                in_force = self._pending[-1] if self._pending else self._current
-                if jammer != in_force:  # what is in force already changes nothing, says nothing
+                if jammer != self._accepted_last():  # a command that changes nothing says nothing
                     self._pending.append(jammer)
         query.reply(self.key, encode(self._reply(reason is None, reason)))
 
