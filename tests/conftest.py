@@ -11,6 +11,22 @@ import pytest
 from shared.scenario import SCENARIO_DIR, Scenario, load_scenario
 
 
+def pytest_sessionstart(session) -> None:
+    """The run's first line says where it runs: float32 results differ between CPUs in their
+    last bits, so a failure report names the CPU and the kernels torch chose on it."""
+    import torch
+
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    if reporter is None or hasattr(session.config, "workerinput"):  # an xdist worker
+        return
+    cpuinfo = Path("/proc/cpuinfo")
+    models = [line.split(":", 1)[1].strip() for line in
+              (cpuinfo.read_text().splitlines() if cpuinfo.exists() else [])
+              if line.startswith("model name")]
+    reporter.write_line(f"cpu: {models[0] if models else 'unknown'} ({os.cpu_count()} cores), "
+                        f"torch kernels: {torch.backends.cpu.get_cpu_capability()}")
+
+
 @pytest.fixture(scope="session")
 def scenario() -> Scenario:
     return load_scenario()

@@ -1,7 +1,11 @@
 from __future__ import annotations
 
 import json
+import os
 import re
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,6 +31,7 @@ from shared.shipped import (
     SINR_MAP_NO_JAMMER_SHADOWED,
     VALUE_NET,
 )
+from tests import float32_bounds as bounds
 
 
 def trained_like(module: TorchNetwork, seed: int = 0, std: float = 1.0) -> TorchNetwork:
@@ -58,12 +63,13 @@ def inputs_like(network: Network, rows: int, seed: int) -> np.ndarray:
     return (tensors["standardize.mean"] + tensors["standardize.std"] * noise).astype(np.float32)
 
 
-def assert_agree(got: np.ndarray, expected: np.ndarray, tolerance: float = 1e-6) -> None:
-    """Within ``tolerance`` of the largest output: float32 keeps 7 digits, so logits in the
-    hundreds agree to about 1e-5, values (at most the reward scale) to about 1e-7."""
-    assert got.dtype == np.float32 and got.shape == expected.shape
-    np.testing.assert_allclose(got, expected, rtol=0,
-                               atol=tolerance * max(1.0, float(np.abs(expected).max())))
+def assert_agree(network: Network, inputs: np.ndarray, *forwards: np.ndarray) -> None:
+    """Each float32 forward's outputs within float32's bound of the exact ones (float32_bounds:
+    the bound follows the network's depth, widths, weights and inputs, not one CPU's kernels)."""
+    exact = (bounds.values(network, inputs) if isinstance(network, ValueNetwork)
+             else bounds.last_layer(network, inputs))
+    for outputs in forwards:
+        bounds.assert_within(outputs, exact)
 
 
 @pytest.mark.parametrize("module", [TorchValueNetwork(34, 2.0), TorchSinrMapNetwork(20, 3)])
@@ -90,14 +96,24 @@ def test_the_numpy_forward_agrees_with_torch_on_the_shipped_models(path):
     inputs = inputs_like(network, 5000, seed=1)
     expected = torch_forward(module_of(network), inputs)
     got = network(inputs)
+    assert_agree(network, inputs, got, expected)
     if isinstance(network, ValueNetwork):
-        assert_agree(got, expected)
-        assert np.ptp(expected) > 0.5  # the states span values, not one saturated end
-    else:
-        assert_agree(got, expected)
-        assert_agree(predict_probabilities(network, inputs),
-                     torch.softmax(torch.from_numpy(expected), -1).numpy())
-        np.testing.assert_array_equal(got.argmax(-1), expected.argmax(-1))
+        exact = bounds.values(network, inputs)
+        assert np.ptp(exact.exact) > 0.5  # the states span values, not one saturated end
+        # The bound is far inside the outputs' spread: a forward off by a layer is caught.
+        assert exact.bound.max() < 1e-3 * np.ptp(exact.exact)
+        return
+    logits = bounds.last_layer(network, inputs)
+    assert logits.bound.max() < 1e-3 * np.ptp(logits.exact)
+    chances = bounds.probabilities(logits)
+    bounds.assert_within(predict_probabilities(network, inputs), chances)
+    bounds.assert_within(torch.softmax(torch.from_numpy(expected), -1).numpy(), chances)
+    # The level a map serves: the same from both forwards and the exact one, wherever no
+    # forward within the bounds could pick another (logits closer than their bounds: a tie).
+    clear = bounds.decided(logits)
+    assert clear.mean() > 0.99
+    for forward in (got, expected):
+        np.testing.assert_array_equal(forward.argmax(-1)[clear], logits.exact.argmax(-1)[clear])
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -108,7 +124,7 @@ def test_the_numpy_forward_agrees_with_torch_on_random_weights(build, seed):
     for module in (build(), trained_like(build(), seed, std=0.2)):
         network = module.inference()
         inputs = inputs_like(network, 2000, seed)
-        assert_agree(network(inputs), torch_forward(module, inputs))
+        assert_agree(network, inputs, network(inputs), torch_forward(module, inputs))
 
 
 def test_the_numpy_form_follows_the_modules_training_steps():
@@ -124,7 +140,7 @@ def test_the_numpy_form_follows_the_modules_training_steps():
     module.standardize.fit(states)
     after = network(states.numpy())
     assert np.abs(after - before).max() > 0.01
-    assert_agree(after, torch_forward(module, states.numpy()))
+    assert_agree(network, states.numpy(), after, torch_forward(module, states.numpy()))
 
 
 def test_value_output_is_bounded_by_the_scale():
@@ -206,3 +222,21 @@ def test_a_network_read_from_bytes_computes_without_its_subnormal_weights():
     assert to_bytes(read) == data
     inputs = inputs_like(read, 2000, seed=3)
     np.testing.assert_array_equal(read(inputs), exact(inputs))
+
+
+def test_torchs_plain_kernels_give_the_same_agreement():
+    """torch's plain kernels (ATEN_CPU_CAPABILITY=default) stand in for an older CPU than this
+    one: the forwards agree with the exact ones within the same derived bounds there too, and
+    decide as they do."""
+    plain = dict(os.environ, ATEN_CPU_CAPABILITY="default")
+    capability = subprocess.run(
+        [sys.executable, "-c", "import torch; print(torch.backends.cpu.get_cpu_capability())"],
+        env=plain, capture_output=True, text=True, check=True)
+    assert capability.stdout.strip() == "DEFAULT"
+    tests = Path(__file__).parent
+    run = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", __file__,
+                          str(tests / "test_policy.py"), "-k",
+                          "agrees_with_torch or decide_as_the_exact_values"],
+                         env=plain, cwd=tests.parent, capture_output=True, text=True)
+    assert run.returncode == 0, run.stdout[-3000:]
+    assert re.search(r"\b12 passed\b", run.stdout), run.stdout[-500:]
