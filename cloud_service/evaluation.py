@@ -13,7 +13,9 @@ every so many episodes, the resilience evaluation.
 
 from __future__ import annotations
 
+import math
 import tempfile
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -85,21 +87,40 @@ class OnlineMaps:
             scenario, self.memory, network, float(card.get("accuracy", 0.99)),
             retrain=RetrainConfig(max_seconds=None), clock=lambda: self.now, background=False,
         )
+        # A map the cloud publishes after the upload of step t flies from step t + delay on:
+        # the cloud's time to compute it and the UAVs' to receive it, in flight.
+        self.delay_steps = math.ceil(
+            scenario.online_map.cloud_latency_s / scenario.timing.step_s - 1e-9)
+        self.steps_flown = 0
+        self._published: deque[tuple[int, int, SinrMapNetwork]] = deque()
+        self.served_version, self._served = self.mapper.version, network
+        self.service_events: list[dict[str, Any]] = []
         self._raster_version = -1
         self._raster = None
         self.uploads = 0
         self.spots: SpotFilter | None = None
 
     def __call__(self, world: VectorWorld, rows: np.ndarray) -> RasterMap:
-        if self._raster_version != self.mapper.version:
-            self._raster = sinr_network_raster(self.mapper.current_network(), self.scenario)
-            self._raster_version = self.mapper.version
+        while self._published and self._published[0][0] <= self.steps_flown:
+            _, self.served_version, self._served = self._published.popleft()
+            self.service_events.append({"type": "sinr_map_in_service", "t": self.now,
+                                        "version": self.served_version})
+        if self._raster_version != self.served_version:
+            self._raster = sinr_network_raster(self._served, self.scenario)
+            self._raster_version = self.served_version
         return RasterMap(self.scenario, [self._raster], np.zeros(rows.size, dtype=np.int64))
+
+    def _note_publication(self) -> None:
+        last = self._published[-1][1] if self._published else self.served_version
+        if self.mapper.version != last:
+            self._published.append((self.steps_flown + self.delay_steps, self.mapper.version,
+                                    self.mapper.current_network()))
 
     def upload(self, world: VectorWorld) -> None:
         """Every UAV that flew this step uploads what its receiver reported along the way,
         de-duplicated as an agent de-duplicates (``SpotFilter``)."""
         self.now += world.dt
+        self.steps_flown += 1
         env, uav = np.nonzero(world.measured)
         if env.size == 0:
             return
@@ -117,6 +138,7 @@ class OnlineMaps:
             scenario_features(self.scenario, xy[rows, sample]), levels[rows, sample],
         )
         self.mapper.ingest(batch)
+        self._note_publication()
 
     def close(self) -> None:
         self.mapper.close()
@@ -233,7 +255,7 @@ def evaluate(
 
         def episode_done(episode: int) -> None:
             if online is not None and episode + 1 < episodes:
-                start_version[episode + 1] = online.mapper.version
+                start_version[episode + 1] = online.served_version
             if on_episode is not None:
                 on_episode(episode)
 
@@ -265,7 +287,9 @@ def evaluate(
                             **(outcome_rates(results.outcomes[rows]) if rows.any() else {})}
         report["transient"]["rule"] = ("episodes flown on a map older than the jammer: from a "
                                        "change until a map published since")
-        report["events"] = online.mapper.events
+        report["events"] = sorted(online.mapper.events + online.service_events,
+                                  key=lambda event: event["t"])
+        report["cloud_latency_s"] = scenario.online_map.cloud_latency_s
         report["flight_seconds"] = round(online.now, 3)  # what the cloud saw flown, all told
     if swap_every is not None:
         report["jammers"] = [

@@ -110,6 +110,21 @@ def _add_jammer(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--no-jammer", action="store_true", help="no jammer at all")
 
 
+def _add_cloud_latency(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--cloud-latency", type=float, default=None, metavar="S",
+                        help="flight seconds from an upload to the online map it triggers in "
+                             "service, 0 to 3600 (default: the scenario's "
+                             "online_map.cloud_latency_s)")
+
+
+def with_cloud_latency(args: argparse.Namespace, scenario: Scenario) -> Scenario:
+    """``scenario`` with --cloud-latency applied, if given."""
+    if args.cloud_latency is None:
+        return scenario
+    check_range("--cloud-latency", args.cloud_latency, 0, 3600)
+    return scenario.changed({"online_map.cloud_latency_s": args.cloud_latency})
+
+
 def scenario_with_jammer(args: argparse.Namespace) -> Scenario:
     """The scenario named by --scenario with --jammer/--no-jammer applied and validated."""
     from shared.messages import JammerInfo
@@ -250,7 +265,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     check_range("--seed", args.seed, 0, SEED_MAX)
     if args.swap_every is not None:
         check_range("--swap-every", args.swap_every, 1)
-    scenario = scenario_with_jammer(args)
+    scenario = with_cloud_latency(args, scenario_with_jammer(args))
     check_fleet("--uavs", args.uavs or scenario.missions.uav_count, scenario, args.seed)
     jammer = RadioModel.jammer_of(scenario)
     setting = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
@@ -260,6 +275,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
             raise UsageError(f"--sinr-map is the proposed method's initial map; --method "
                              f"{args.method} does not read one")
         survey_map_argument("--sinr-map", args.sinr_map, scenario)
+    if args.cloud_latency is not None and args.method != "proposed":
+        raise UsageError(f"--cloud-latency is the online map's; --method {args.method} flies "
+                         "without one")
     if args.model is not None and args.method not in LOOKAHEAD_METHODS:
         raise UsageError(f"--model: --method {args.method} flies without a value network")
     torch.set_num_threads(1)
@@ -305,7 +323,7 @@ def cmd_table(args: argparse.Namespace) -> int:
     check_range("--seed", args.seed, 0, SEED_MAX)
     out = output_path("--out", args.out, directory=True)
     torch.set_num_threads(1)
-    scenario = _load_scenario(args)
+    scenario = with_cloud_latency(args, _load_scenario(args))
     check_fleet("the scenario's missions.uav_count", scenario.missions.uav_count, scenario,
                 args.seed)
     nets = {"paper": value_net_path(args.model),
@@ -509,6 +527,38 @@ def cmd_fit_sinr(args: argparse.Namespace) -> int:
 MAX_ONLINE_PERIOD_S = 3600.0
 
 
+def cmd_cloud_latency(args: argparse.Namespace) -> int:
+    from cloud_service.evaluation import EvaluationError
+    from cloud_service.latency_sweep import sweep, write_outputs
+
+    check_range("--episodes", args.episodes, 1)
+    check_range("--seeds", args.seeds, 1, 100)
+    check_range("--swap-every", args.swap_every, 1)
+    latencies = _numbers(args.latencies, len(args.latencies.split(",")), "--latencies")
+    for latency in latencies:
+        check_range("--latencies", latency, 0, 3600)
+    out = output_path("--out", args.out, directory=True)
+    scenario = scenario_with_jammer(args)
+    check_fleet("--uavs", args.uavs or scenario.missions.uav_count, scenario, 0)
+    _one_torch_thread()
+    runs, done = args.seeds * (len(latencies) + 1), 0
+
+    def on_run(label: str) -> None:
+        nonlocal done
+        done += 1
+        print(f"cloud-latency: run {done}/{runs}: {label}", file=sys.stderr, flush=True)
+
+    try:
+        result = sweep(scenario, latencies, args.seeds, args.episodes, args.swap_every,
+                       args.uavs, on_run)
+    except EvaluationError as exc:
+        raise UsageError(f"cloud-latency: {exc}") from None
+    paths = write_outputs(result, out, "jamnav " + " ".join(sys.argv[1:]))
+    print(paths[1].read_text(encoding="utf-8"))
+    print("wrote " + ", ".join(map(str, paths)), file=sys.stderr)
+    return 0
+
+
 def cmd_online_map(args: argparse.Namespace) -> int:
     from cloud_service.online_map_sim import (
         DEFAULT_UAVS,
@@ -641,6 +691,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--swap-every", type=int, default=None, metavar="K",
                             help="resilience evaluation: move the jammer to a fresh random "
                                  "setting every K episodes")
+    _add_cloud_latency(evaluation)
     evaluation.add_argument("--json", action="store_true", help="print JSON")
     evaluation.add_argument("--per-episode", action="store_true",
                             help="include each episode's per-UAV outcomes")
@@ -659,6 +710,7 @@ def build_parser() -> argparse.ArgumentParser:
     table.add_argument("--extended-model", default=None,
                        help="the extended column's value network (a name or a path; default: "
                             "the best shipped one for the scenario's fleet)")
+    _add_cloud_latency(table)
     table.set_defaults(handler=cmd_table)
 
     figures = commands.add_parser("figures", help="the paper's Fig. 2a, 2b and 3 from real runs")
@@ -720,6 +772,26 @@ def build_parser() -> argparse.ArgumentParser:
     online.add_argument("--seed", type=int, default=0)
     online.add_argument("--out", required=True, metavar="FILE.png")
     online.set_defaults(handler=cmd_online_map)
+
+    latency = commands.add_parser(
+        "cloud-latency", help="success on the online map against the cloud's latency, the "
+                              "jammer moving (figure, table)")
+    _add_scenario(latency)
+    _add_jammer(latency)
+    latency.add_argument("--latencies", default="0,1,2,5,10,30,60", metavar="S,S,...",
+                         help="cloud latencies to fly, seconds of flight (default "
+                              "0,1,2,5,10,30,60)")
+    latency.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
+    latency.add_argument("--episodes", type=int, default=200,
+                         help="episodes per seed and latency (default 200)")
+    latency.add_argument("--swap-every", type=int, default=10, metavar="K",
+                         help="move the jammer to a fresh random setting every K episodes "
+                              "(default 10)")
+    latency.add_argument("--uavs", type=int, default=None, help="UAVs per episode")
+    latency.add_argument("--out", default="results", metavar="DIR",
+                         help="where cloud_latency_<scenario>.{json,md,png} go (default: "
+                              "results)")
+    latency.set_defaults(handler=cmd_cloud_latency)
 
     soak = commands.add_parser(
         "chaos", help="run the system while killing and freezing its processes, then check "

@@ -239,6 +239,9 @@ class OnlineMap(_Strict):
     # Points the survey map (corrected by the jammer's estimate) labels for each refit: the
     # prior that tells the network what the uploads have not reached.
     prior_points: Annotated[int, Field(ge=1, le=1_000_000)]
+    # Flight seconds from the cloud having an upload to a map it triggers flying on the UAVs:
+    # in-process runs put a map published at step t in service at t + ceil(latency / dt).
+    cloud_latency_s: Annotated[float, Field(ge=0, le=3600, allow_inf_nan=False)]
 
 
 class Scenario(_Strict):

@@ -150,3 +150,19 @@ def test_the_paper_method_flies_the_tt6_world_as_the_paper_reports():
     report = evaluate(tt6, "perfect", 32, 0, TABLE_I_JAMMERS[0],
                       value_net=value_net_path("paper-tt6"))
     assert report["success_rate"] >= 0.85
+
+
+@pytest.mark.parametrize("latency_s", [0.0, 3.0])
+def test_a_published_map_flies_after_the_clouds_latency(scenario, latency_s):
+    """A map the cloud publishes after the uploads of step t flies from step t + ceil(latency /
+    dt) on: each version enters service exactly that much flight after it was published."""
+    slow = scenario.changed({"online_map.cloud_latency_s": latency_s})
+    report = evaluate(slow, "proposed", 6, 2, TABLE_I_JAMMERS[0])
+    published = {e["version"]: e["t"] for e in report["events"]
+                 if e["type"] == "sinr_weights_published"}
+    in_service = {e["version"]: e["t"] for e in report["events"]
+                  if e["type"] == "sinr_map_in_service"}
+    assert published and report["cloud_latency_s"] == latency_s
+    delay = math.ceil(latency_s / scenario.timing.step_s) * scenario.timing.step_s
+    flown = report["flight_seconds"]
+    assert {v: t + delay for v, t in published.items() if t + delay < flown} == in_service
