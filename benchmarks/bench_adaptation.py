@@ -11,6 +11,7 @@ time, so every figure is seconds of flight after the change, the same on any mac
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 
 import numpy as np
@@ -50,6 +51,10 @@ TRUTH_SPACING_M = 2.0
 # How much of a change the fleet can see within the detection target's 5 s: the most the new
 # jammer lowers the true SINR at any report taken in that time.
 VISIBLE_WITHIN_S = 5.0
+# Flight after a change at which the map in service (the scenario's cloud latency counted) is
+# scored against the truth: a change the old map still describes is served right.
+SERVED_AT_S = (0.0, 2.0, 5.0, 10.0, 30.0)
+SERVED_TARGETS = {"icc2021": {10.0: 95.0, 30.0: 97.0}}  # 10th percentile over the changes, %
 
 
 def run() -> list[Figure]:
@@ -113,6 +118,10 @@ def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
     dt = scenario.timing.step_s
     first_map, accuracy_first, accuracy_30, evidence = None, None, None, None
     shift_db = 0.0
+    # Maps by the flight after the change from which they are in service: the one in service
+    # at the change, then each published after it, the cloud's latency later.
+    delay_s = math.ceil(scenario.online_map.cloud_latency_s / dt - 1e-9) * dt
+    in_service: list[tuple[float, SinrMapNetwork]] = []
     for step in range(int((WARM_UP_S + AFTER_S) / dt)):
         now[0] = step * dt
         after = now[0] - WARM_UP_S
@@ -124,7 +133,11 @@ def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
             evidence = after
         if 0 <= after < VISIBLE_WITHIN_S:
             shift_db = max(shift_db, truth.sinr_shift_db(uploads, setting))
+        if after >= 0 and not in_service:
+            in_service.append((0.0, mapper.current_network()))
         mapper.ingest(uploads)
+        if mapper.version != version and after >= 0:
+            in_service.append((after + delay_s, mapper.current_network()))
         if mapper.version != version and first_map is None and after >= 0:
             first_map = after + dt
             accuracy_first = truth.accuracy(mapper.current_network(), setting)
@@ -132,7 +145,9 @@ def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
             accuracy_30 = truth.accuracy(mapper.current_network(), setting)
     detected = [e["t"] - WARM_UP_S for e in mapper.events if e["type"] == "change_detected"]
     mapper.close()
-    return {"setting": setting, "detected": detected, "first_map": first_map,
+    served = {at: truth.accuracy([net for since, net in in_service if since <= at][-1], setting)
+              for at in SERVED_AT_S}
+    return {"setting": setting, "detected": detected, "first_map": first_map, "served": served,
             "accuracy_first": accuracy_first, "accuracy_30": accuracy_30, "evidence": evidence,
             "accuracy_survey": survey, "moved": truth.moved(setting), "shift_db": shift_db}
 
@@ -263,7 +278,7 @@ def adaptation_figures(scenario: Scenario) -> list[Figure]:
     first = [r["accuracy_first"] for r in trials if r["accuracy_first"] is not None]
     at_30 = [r["accuracy_30"] for r in trials]
     on_missions, mission_success = _mission_detections(scenario, 0)
-    return [
+    return _served_figures(scenario, name, trials) + [
         Figure(f"{name}: change detected, median s", d50, "s", 2, lower_is_better=True),
         Figure(f"{name}: change detected, p90 s", d90, "s", 5, lower_is_better=True),
         Figure(f"{name}: no report contradicts the map in {AFTER_S:.0f} s", never, "count"),
@@ -297,6 +312,21 @@ def adaptation_figures(scenario: Scenario) -> list[Figure]:
                lower_is_better=True),
         Figure(f"{scenario.name}: success of those missions %", 100 * mission_success, "%"),
     ] + _detector_alone(scenario, 7)
+
+
+def _served_figures(scenario: Scenario, name: str, trials: list[dict]) -> list[Figure]:
+    """The map in service against the truth at each of SERVED_AT_S after the change: the
+    10th percentile and the median over the changes."""
+    latency = scenario.online_map.cloud_latency_s
+    targets = SERVED_TARGETS.get(scenario.name, {})
+    figures = []
+    for at in SERVED_AT_S:
+        scores = 100 * np.array([r["served"][at] for r in trials])
+        label = f"{name}: map in service {at:g} s after (latency {latency:g} s) vs truth"
+        figures += [Figure(f"{label}, p10 %", float(np.percentile(scores, 10)), "%",
+                           targets.get(at)),
+                    Figure(f"{label}, median %", float(np.median(scores)), "%")]
+    return figures
 
 
 def localization_figures(scenario: Scenario) -> list[Figure]:
