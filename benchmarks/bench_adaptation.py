@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from benchmarks.common import Figure
-from cloud_service.evaluation import evaluate, random_jammer
+from cloud_service.evaluation import evaluate
 from cloud_service.jammer_estimation import (
     estimate_jammer,
     positions_from_features,
@@ -38,6 +38,7 @@ from shared.paper import JammerSetting, jammer_params
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
 from shared.shipped import sinr_map_for
+from world_sim.jammers import random_jammer
 
 SCENARIOS = ("icc2021", "icc2021-shadowed")
 UAVS = 4

@@ -20,7 +20,7 @@ import numpy as np
 from benchmarks.bench_adaptation import TruthGrid
 from benchmarks.bench_map_ceiling import LocalReportMap
 from benchmarks.common import Figure
-from cloud_service.evaluation import load_policy, random_jammer
+from cloud_service.evaluation import load_policy
 from cloud_service.jammer_estimation import (
     JammerEstimate,
     corrected_levels,
@@ -47,6 +47,7 @@ from shared.policy import MAP_SPACING_M, LevelRaster, RasterMap
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
 from shared.shipped import sinr_map_for, value_net_for
+from world_sim.jammers import random_jammer
 
 SETTINGS = (JammerSetting(0.0, 0.0, 1.0), JammerSetting(-30.0, 10.0, 1.0))
 EPISODES = 200

@@ -23,7 +23,6 @@ from typing import Any
 import numpy as np
 
 from cloud_service.rollout import (
-    JammerSchedule,
     LookaheadController,
     OrcaController,
     StraightController,
@@ -47,10 +46,10 @@ from shared.policy import LookaheadPolicy, RasterMap, sinr_network_raster
 from shared.scenario import MAX_UAVS, Scenario
 from shared.shipped import NoSurveyMapError, sinr_map_for, value_net_for
 from world_sim.core import VectorWorld
+from world_sim.jammers import JammerSchedule, swapping_jammers
 
 METHODS = ("proposed", "perfect", "outdated", "orca", "straight")
 LOOKAHEAD_METHODS = ("proposed", "perfect", "outdated")  # the rest fly without a value network
-_SWAP_STREAM = 0x5A4150  # a stream of its own for the swapped jammers of a run
 
 
 class EvaluationError(ValueError):
@@ -143,30 +142,6 @@ class OnlineMaps:
     def close(self) -> None:
         self.mapper.close()
         self.memory.close()
-
-
-def swapping_jammers(scenario: Scenario, first: JammerSetting | None, swap_every: int | None,
-                     seed: int) -> JammerSchedule:
-    """Episode -> jammer: ``first`` for the first ``swap_every`` episodes, then a fresh random
-    setting every ``swap_every`` (position uniform over the area, power uniform over the
-    scenario's training range), drawn from ``seed`` alone; ``first`` throughout without swaps."""
-
-    def at(episode: int) -> JammerSetting | None:
-        period = 0 if swap_every is None else episode // swap_every
-        if period == 0:
-            return first
-        x, y, power_w = random_jammer(scenario, np.random.default_rng([seed, _SWAP_STREAM,
-                                                                       period]))
-        return JammerSetting(round(x, 1), round(y, 1), round(power_w, 2))
-
-    return at
-
-
-def random_jammer(scenario: Scenario, rng: np.random.Generator) -> JammerSetting:
-    """A jammer anywhere in the area, its power uniform over the scenario's training range."""
-    area, powers = scenario.area, scenario.training.jammer_power_range_w
-    x, y = rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max))
-    return JammerSetting(float(x), float(y), float(rng.uniform(*powers)))
 
 
 def transient_episodes(schedule: JammerSchedule, start_version: np.ndarray) -> np.ndarray:

@@ -9,6 +9,9 @@
 - ``--map perfect`` and ``--map outdated`` replace the learned map, for comparison: the true
   map of the current jammer (followed through the world's ``jammer_changed`` events) or the
   map without any jammer, both as rasters.
+- ``--clock lockstep`` (with the online map) puts the cloud on the world's clock: uploads come
+  in rounds, one per world step, and each is taken whole, in simulated time, before the world
+  goes on (``cloud_service.rounds``); a map flies from the round its latency says.
 
 Zenoh callbacks only queue what arrives; one worker thread does the storing and learning.
 """
@@ -29,10 +32,11 @@ from typing import Any
 
 from cloud_service.jammer_estimation import JammerEstimate as EstimatedJammer
 from cloud_service.rollout import RasterMaps
+from cloud_service.rounds import RoundDesk, delay_rounds
 from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights, RetrainConfig
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
 from shared import access, bus
-from shared.measurements import MeasurementSpec
+from shared.measurements import MeasurementBatch, MeasurementSpec
 from shared.messages import (
     ChangeDetected,
     JammerChanged,
@@ -45,6 +49,8 @@ from shared.messages import (
     ProcessStatus,
     RasterGrid,
     RetrainFailed,
+    RoundClosed,
+    RoundOpened,
     SinrMap,
     SinrWeightsPublished,
     UploadReceipt,
@@ -83,10 +89,12 @@ def raster_map(scenario: Scenario, maps: RasterMaps, mode: MapMode, version: int
                                    rows=rows, cols=cols))
 
 
-def map_card(weights: PublishedWeights, published: float) -> dict[str, Any]:
-    """The card saved beside a published SINR map: what a restarted cloud carries on with."""
+def map_card(weights: PublishedWeights, published: float,
+             flown_s: float | None = None) -> dict[str, Any]:
+    """The card saved beside a published SINR map: what a restarted cloud carries on with;
+    on the lockstep clock, also the run's seconds of flight when it was published."""
     return {"version": weights.version, "accuracy": weights.accuracy, "sha256": weights.sha256,
-            "published": published,
+            "published": published, "flown_s": flown_s,
             "estimate": None if weights.estimate is None else weights.estimate._asdict(),
             "refining_since": weights.refining_since, "provisional": weights.provisional}
 
@@ -111,12 +119,17 @@ def latest_saved(directory: Path) -> Path | None:
 
 
 class CloudService:
+    """The cloud process's work: serve both networks, store every upload, keep the SINR map
+    current (or follow the true one), and, on the lockstep clock, close each round."""
+
     def __init__(self, session, topics: Topics, scenario: Scenario, mode: MapMode,
                  run_dir: Path, log: logging.Logger, *, value_net: Path = EXTENDED_VALUE_NET,
                  sinr_net: Path | None = None, jammer: JammerInfo | None = None,
-                 retrain: RetrainConfig | None = None):
+                 retrain: RetrainConfig | None = None, lockstep: bool = False):
         self.session, self.topics, self.scenario, self.mode, self.log = (
             session, topics, scenario, mode, log)
+        self.flown_s = 0.0  # on the lockstep clock: the mapper's time, the round's
+        self.rounds: RoundDesk | None = None
         self.maps_dir = run_dir / "sinr_maps"
         self.maps_dir.mkdir(parents=True, exist_ok=True)
         self.dropped = bus.Dropped(log)
@@ -129,7 +142,10 @@ class CloudService:
         self.mapper: OnlineSinrMapper | None = None
         self._events_seen = 0
         if mode == "online":
-            self.sinr = self._start_mapper(sinr_net or sinr_map_for(scenario), retrain)
+            self.sinr = self._start_mapper(sinr_net or sinr_map_for(scenario), retrain, lockstep)
+            if lockstep:
+                self.rounds = RoundDesk(delay_rounds(scenario.online_map.cloud_latency_s,
+                                                     scenario.timing.step_s), self.sinr.version)
         else:
             self.raster_maps = RasterMaps(scenario)
             self.sinr = raster_map(scenario, self.raster_maps, mode, 1, jammer)
@@ -149,6 +165,10 @@ class CloudService:
         if mode == "perfect":
             self._declared.append(bus.subscribe(session, topics.event("jammer_changed"),
                                                 JammerChanged, self.tasks.put, self.dropped))
+        if self.rounds is not None:
+            self.round_pub = bus.reliable_publisher(session, topics.round_closed)
+            self._declared.append(bus.subscribe(session, topics.round_opened, RoundOpened,
+                                                self.tasks.put, self.dropped))
         self._declared.append(bus.declare_alive(session, topics, ROLE, 0))
 
     def _value_weights(self, path: Path) -> ValueWeights:
@@ -158,7 +178,8 @@ class CloudService:
         data = path.read_bytes()
         return ValueWeights(version=int(card.get("version", 1)), sha256=sha256(data), data=data)
 
-    def _start_mapper(self, sinr_net: Path, retrain: RetrainConfig | None) -> SinrMap:
+    def _start_mapper(self, sinr_net: Path, retrain: RetrainConfig | None,
+                      lockstep: bool) -> SinrMap:
         spec = MeasurementSpec.of(self.scenario)
         path = latest_saved(self.maps_dir) or sinr_net
         network, card = load_network(path, {"kind": "sinr_map", "input_size": spec.feature_size,
@@ -175,10 +196,14 @@ class CloudService:
                                                   "levels": spec.level_count})
         if (warning := foreign_survey_map(base_card, self.scenario)) is not None:
             self.log.warning("%s: %s", sinr_net, warning)
+        # On the lockstep clock the mapper runs as in-process: inline, in simulated time, and
+        # without a wall-clock budget that a busy machine would cut a refit short by.
+        timing = ({"clock": lambda: self.flown_s, "background": False,
+                   "retrain": retrain or RetrainConfig(max_seconds=None)} if lockstep
+                  else {"retrain": retrain})
         self.mapper = OnlineSinrMapper(self.scenario, self.memory, network, float(accuracy),
-                                       base_network=base,
-                                       publish=self._on_retrained, retrain=retrain,
-                                       version=version, estimate=estimate,
+                                       base_network=base, publish=self._on_retrained,
+                                       **timing, version=version, estimate=estimate,
                                        refining_since=refining_since
                                        if isinstance(refining_since, int | float) else None)
         data = path.read_bytes()
@@ -199,8 +224,13 @@ class CloudService:
         key = self.topics.measurements("*")
         try:
             upload = bus.receive(MeasurementUpload, query.key_expr, query.payload)
-            if max(m.time for m in upload.measurements) > time.time() + CLOCK_SKEW_S:
+            if max((m.time for m in upload.measurements), default=0.0) > (
+                    time.time() + CLOCK_SKEW_S):
                 raise MessageError("upload with measurements from the future")
+            if (upload.round is None) != (self.rounds is None):
+                raise MessageError("a round's upload, and the cloud is not on the lockstep "
+                                   "clock" if self.rounds is None else
+                                   "an upload outside the rounds of the lockstep clock")
         except MessageError as exc:
             self.dropped.add(key, str(exc))
             bus.refuse(query, str(exc))
@@ -224,6 +254,7 @@ class CloudService:
             try:
                 tasks = [self.tasks.get(timeout=0.2)]
             except queue.Empty:
+                self._close_rounds()  # a round that waited its time for an agent
                 continue
             while not self.tasks.empty():
                 tasks.append(self.tasks.get_nowait())
@@ -241,20 +272,61 @@ class CloudService:
         for task in tasks:
             if isinstance(task, JammerChanged):
                 self._follow_jammer(task)
+            elif isinstance(task, RoundOpened):
+                self.rounds.open(task)
+            elif self.rounds is not None:
+                self._round_upload(*task)
             else:
                 upload, query = task
-                query.reply(query.key_expr, encode(self._ingest(upload.measurements)))
-                query.drop()  # a query held on to is not finished: its caller would wait
+                _answer(query, self._ingest(upload.measurements))
+        self._close_rounds()
+
+    def _round_upload(self, upload: MeasurementUpload, query) -> None:
+        if self.rounds.stale(upload.round):  # a repeat after its round closed: stored then
+            _answer(query, self._count(self.memory.append(upload.measurements),
+                                       len(upload.measurements)))
+        else:
+            self.rounds.add(upload, query)
+
+    def _close_rounds(self) -> None:
+        """Take every round whose uploads are in: store them in UAV order, have the mapper
+        take them as one batch, answer the uploads and the world."""
+        if self.rounds is None:
+            return
+        while (closing := self.rounds.next_closing(time.monotonic())) is not None:
+            opened, uploads = closing
+            self.flown_s = opened.flown_s
+            before = self.mapper.version
+            stored = []
+            for upload, query in uploads:
+                rows, duplicates = self.memory.store(upload.measurements)
+                stored.append(rows)
+                _answer(query, self._count((len(rows), duplicates), len(upload.measurements)))
+            if stored:
+                self.mapper.take(MeasurementBatch.concatenate(stored))
+                self._publish_mapper_events()
+            self.rounds.published(opened.round, list(range(before + 1,
+                                                           self.mapper.version + 1)))
+            self.rounds.close(opened.round)
+            self.round_pub.put(encode(RoundClosed(round=opened.round,
+                                                  serving=self.rounds.serving,
+                                                  pending=self.rounds.pending)))
 
     def _ingest(self, measurements) -> UploadReceipt:
         if self.mapper is None:
-            stored, duplicates = self.memory.append(measurements)
+            counts = self.memory.append(measurements)
         else:
             report = self.mapper.ingest(measurements)
-            stored, duplicates = report.accepted, report.duplicates
+            counts = report.accepted, report.duplicates
             self._publish_mapper_events()
+        return self._count(counts, len(measurements))
+
+    def _count(self, counts: tuple[int, int], uploaded: int) -> UploadReceipt:
+        """The receipt of an upload of ``uploaded`` records, ``counts`` (stored, duplicates)
+        of them new and repeated; the rest were refused."""
+        stored, duplicates = counts
         receipt = UploadReceipt(stored=stored, duplicates=duplicates,
-                                refused=len(measurements) - stored - duplicates)
+                                refused=uploaded - stored - duplicates)
         for name, count in receipt:
             self.receipts[f"measurements_{name}"] += count
         return receipt
@@ -291,7 +363,8 @@ class CloudService:
         path = self.maps_dir / f"sinr_map_v{weights.version}.safetensors"
         path.write_bytes(weights.data)
         path.with_suffix(".json").write_text(json.dumps(
-            map_card(weights, time.time()), indent=2) + "\n", encoding="utf-8")
+            map_card(weights, time.time(), None if self.rounds is None else self.flown_s),
+            indent=2) + "\n", encoding="utf-8")
         update = SinrMap(version=weights.version, mode="online", sha256=weights.sha256,
                          data=weights.data, accuracy=weights.accuracy)
         with self._lock:
@@ -312,6 +385,11 @@ class CloudService:
 
     def _publish_event(self, event) -> None:
         bus.publish_event(self.session, self.topics, event)
+
+
+def _answer(query, receipt: UploadReceipt) -> None:
+    query.reply(query.key_expr, encode(receipt))
+    query.drop()  # a query held on to is not finished: its caller would wait
 
 
 # -- process shell ------------------------------------------------------------------------------
@@ -348,18 +426,25 @@ def build_parser() -> argparse.ArgumentParser:
                              "one of the scenario's radio world)")
     parser.add_argument("--retrain-samples", type=int, default=None, metavar="N",
                         help="post-change measurements a retraining waits for")
+    parser.add_argument("--clock", choices=("realtime", "lockstep"), default="realtime",
+                        help="lockstep: the online map takes the world's rounds of uploads, "
+                             "in simulated time (the world runs --cloud-clock)")
+    parser.add_argument("--cloud-latency", type=float, default=None, metavar="S",
+                        help="lockstep: flight seconds from a round to the maps it triggers "
+                             "in service (default: the scenario's online_map.cloud_latency_s)")
     jam = parser.add_mutually_exclusive_group()
     jam.add_argument("--jammer", metavar="X,Y,P[,H]", help="initial jammer (map perfect)")
     jam.add_argument("--no-jammer", action="store_true")
     return parser
 
 
-def load_training_in_background(network: SinrMapNetwork) -> None:
+def load_training(network: SinrMapNetwork, background: bool) -> None:
     """Torch takes 1.5-3 s to import, and its first fit 1.2-1.9 s more than the next. The cloud
     serves its weights at once (the agents, and so the first step, wait for them) and loads
     torch meanwhile, and fits ``network`` (the survey map) for two throwaway steps, for its
     first retraining: over the bus the first provisional map after `jamnav jammer set` came
-    2.2 s after the first estimate attempt without it."""
+    2.2 s after the first estimate attempt without it. On the lockstep clock it does so before
+    the first round instead: a fit of a round must not draw on torch beside it."""
 
     def load() -> None:
         import torch
@@ -370,7 +455,10 @@ def load_training_in_background(network: SinrMapNetwork) -> None:
 
         warm_up(network)
 
-    threading.Thread(target=load, name="load-torch", daemon=True).start()
+    if background:
+        threading.Thread(target=load, name="load-torch", daemon=True).start()
+    else:
+        load()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -378,6 +466,11 @@ def main(argv: list[str] | None = None) -> int:
     log = bus.setup_logging(ROLE)
     try:
         scenario = load_scenario(args.scenario)
+        if args.cloud_latency is not None:
+            scenario = scenario.changed({"online_map.cloud_latency_s": args.cloud_latency})
+        if args.clock == "lockstep" and args.map != "online":
+            raise ValueError("--clock lockstep is the online map's: --map perfect and outdated "
+                             "follow the world's jammer instead")
         jammer = None
         if not args.no_jammer:
             default = RadioModel.jammer_of(scenario)
@@ -408,12 +501,13 @@ def main(argv: list[str] | None = None) -> int:
             cloud = CloudService(session, topics, scenario, args.map, Path(args.run_dir), log,
                                  value_net=value_net_path(args.value_net),
                                  sinr_net=sinr_net,
-                                 jammer=jammer, retrain=retrain)
+                                 jammer=jammer, retrain=retrain,
+                                 lockstep=args.clock == "lockstep")
         except (WeightsError, ValueError) as exc:
             print(f"cloud: error: {exc}", file=sys.stderr)
             return 2
         if cloud.mapper is not None:
-            load_training_in_background(cloud.mapper.current_network())
+            load_training(cloud.mapper.current_network(), background=cloud.rounds is None)
         cloud.run(stop)
     return 0
 

@@ -30,9 +30,9 @@ from shared.policy import (
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 from world_sim.core import StepResult, VectorWorld, episode_seed
+from world_sim.jammers import JammerSchedule
 
 MapFor = Callable[[VectorWorld, np.ndarray], RadioMap]
-JammerSchedule = Callable[[int], JammerSetting | None]  # episode -> its jammer
 
 
 def fleet_observation(world: VectorWorld) -> Observation:

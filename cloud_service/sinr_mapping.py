@@ -364,6 +364,12 @@ class OnlineSinrMapper:
 
     def ingest(self, uploads: Uploads) -> IngestReport:
         stored, duplicates = self.memory.store(uploads)
+        return self.take(stored, duplicates)
+
+    def take(self, stored: MeasurementBatch, duplicates: int = 0) -> IngestReport:
+        """Watch and adapt on measurements the memory has just ``stored`` (``ingest`` stores
+        them first; the cloud on the lockstep clock stores a round's uploads one by one, then
+        has the round taken as one batch)."""
         check = None
         with self._lock:
             if len(stored):
@@ -537,7 +543,8 @@ class OnlineSinrMapper:
                 self.events.append({"type": "jammer_estimated", "t": self.clock(),
                                     "map_version": self._version, **estimate._asdict()})
             self.events.append({"type": "sinr_weights_published", "t": self.clock(),
-                                "version": self._version, "accuracy": result.accuracy,
+                                "version": self._version, "sha256": published.sha256,
+                                "accuracy": result.accuracy,
                                 "samples": len(data), "train_seconds": result.seconds,
                                 "provisional": provisional})
         if self.publish is not None:

@@ -149,6 +149,12 @@ def cmd_up(args: argparse.Namespace) -> int:
         _check_value_network(args.model, scenario)
     survey = _survey_map(args, scenario)
     check_range("--retrain-samples", args.retrain_samples, 2)
+    check_range("--swap-every", args.swap_every, 1)
+    check_range("--cloud-latency", args.cloud_latency, 0, 3600)
+    if args.cloud_latency is not None and (args.realtime or args.map != "online"):
+        raise UsageError("--cloud-latency is the online map's on the lockstep clock; "
+                         + ("a --realtime cloud runs on the wall clock" if args.realtime else
+                            f"--map {args.map} follows the world's jammer at once"))
     run_dir = output_path("--run-dir", args.run_dir or time.strftime("runs/up-%Y%m%d-%H%M%S"),
                           directory=True)
     if args.report:
@@ -168,8 +174,9 @@ def cmd_up(args: argparse.Namespace) -> int:
         clock="realtime" if args.realtime else "lockstep", rate=args.rate or DEFAULT_RATE,
         deadline=args.deadline, map=args.map, jammer=args.jammer, no_jammer=args.no_jammer,
         seed=args.seed, report=Path(args.report) if args.report else None,
-        swap_at=args.swap_jammer_at, swap_to=swap_to,
-        retrain_samples=args.retrain_samples, figures=not args.no_figures,
+        swap_at=args.swap_jammer_at, swap_to=swap_to, swap_every=args.swap_every,
+        cloud_latency=args.cloud_latency, retrain_samples=args.retrain_samples,
+        figures=not args.no_figures,
         model=value_net_for(args.model, scenario.area.square_metres, uavs), sinr_map=survey,
         secure=args.secure or args.credentials is not None,
         credentials=Path(args.credentials) if args.credentials else None,
@@ -484,6 +491,13 @@ def register(commands) -> None:
                     help="move the jammer over the control topic SEC seconds into the flight")
     up.add_argument("--swap-to", default=None, metavar="X,Y,P|off",
                     help=f"where --swap-jammer-at moves it (default {DEFAULT_SWAP_TO})")
+    up.add_argument("--swap-every", type=int, default=None, metavar="K",
+                    help="move the jammer to a fresh random setting every K episodes, the "
+                         "ones jamnav eval --swap-every K flies")
+    up.add_argument("--cloud-latency", type=float, default=None, metavar="S",
+                    help="lockstep, online map: flight seconds from a step's uploads to the "
+                         "maps they trigger in service (default: the scenario's "
+                         "online_map.cloud_latency_s; --realtime runs on the wall clock)")
     up.add_argument("--seed", type=int, default=0, help="of the episodes (default 0)")
     up.add_argument("--model", default=None, metavar="NAME|PATH",
                     help=f"the {VALUE_NET_HELP} the cloud serves")

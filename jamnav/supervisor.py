@@ -90,6 +90,8 @@ class UpConfig:
     report: Path | None = None
     swap_at: float | None = None  # seconds after the first step
     swap_to: str | None = None  # X,Y,P[,H] or "off"
+    swap_every: int | None = None  # a fresh random jammer every K episodes
+    cloud_latency: float | None = None  # lockstep, online: the scenario's, unless given
     retrain_samples: int | None = None
     model: Path | None = None  # the value network the cloud serves
     sinr_map: Path | None = None  # the survey map the online map starts from
@@ -235,6 +237,10 @@ class Supervisor:
                              "--run-dir", str(c.run_dir), *jammer]
             if c.retrain_samples is not None:
                 argv += ["--retrain-samples", str(c.retrain_samples)]
+            if self.cloud_clock:
+                argv += ["--clock", "lockstep"]
+            if c.cloud_latency is not None:
+                argv += ["--cloud-latency", repr(c.cloud_latency)]
             if c.model is not None:
                 argv += ["--value-net", str(c.model.resolve())]
             if c.sinr_map is not None:
@@ -249,12 +255,22 @@ class Supervisor:
                          str(c.seed), "--clock", c.clock, "--rate", str(c.rate), "--deadline",
                          str(c.deadline), "--first-episode", str(done), "--start-timeout",
                          str(START_TIMEOUT_S + START_PER_AGENT_S * c.uavs), *jammer]
+        if self.cloud_clock:
+            argv += ["--cloud-clock"]
+        if c.swap_every is not None:
+            argv += ["--swap-every", str(c.swap_every)]
         if c.episodes is not None:
             argv += ["--episodes", str(c.episodes - done)]
         if c.duration is not None:
             elapsed = 0.0 if self.first_step is None else time.monotonic() - self.first_step
             argv += ["--duration", str(max(c.duration - elapsed, 0.1))]
         return argv
+
+    @property
+    def cloud_clock(self) -> bool:
+        """The cloud on the world's clock: lockstep with the online map (``jamnav eval``'s
+        maps, steps and outcomes for the same seed)."""
+        return self.config.clock == "lockstep" and self.config.map == "online"
 
     def _handed_fds(self, child: Child) -> tuple[int, ...]:
         """The descriptors ``child`` inherits: a console, the run's listening socket."""

@@ -207,31 +207,32 @@ def grants(topics: Topics, role: str) -> dict[str, list[str]]:
     if role == RECORDER:  # what it hears is what a replay puts back: all of it
         return {"subscribe": [topics.everything], "announce": [topics.alive(RECORDER)]}
     if role == WORLD:
-        return {"publish": [topics.observation("*"), topics.state,
+        rounds = [topics.measurement_round("*"), topics.round_opened]
+        return {"publish": [topics.observation("*"), topics.state, *rounds,
                             *_events(topics, JammerChanged, UavOutcomes, RunFinished)],
                 # The outcomes go out through a declared publisher (the world keeps them for
                 # a supervisor that missed some): it must see the operator's subscription.
-                "see_subscribers": [topics.observation("*"), topics.state,
+                "see_subscribers": [topics.observation("*"), topics.state, *rounds,
                                     f"{topics.prefix}/event/**"],
-                "subscribe": [topics.action("*")],
+                "subscribe": [topics.action("*"), topics.round_closed],
                 "serve": [topics.jammer_control, topics.status(WORLD, 0)],
                 "be_asked": [topics.jammer_control, every_status],
                 "announce": [topics.alive(WORLD, 0)],
                 "watch": [f"{topics.prefix}/alive/agent/**"]}
     if role == CLOUD:
         desks = [*weights, topics.measurements("*")]
-        return {"publish": [*weights, topics.jammer_estimate,
+        return {"publish": [*weights, topics.jammer_estimate, topics.round_closed,
                             *_events(topics, ChangeDetected, JammerEstimated,
                                      SinrWeightsPublished, RetrainFailed)],
-                "see_subscribers": [*weights, topics.jammer_estimate],
-                "subscribe": _events(topics, JammerChanged),
+                "see_subscribers": [*weights, topics.jammer_estimate, topics.round_closed],
+                "subscribe": [topics.round_opened, *_events(topics, JammerChanged)],
                 "serve": [*desks, topics.status(CLOUD, 0)],
                 "be_asked": [*desks, every_status],
                 "announce": [topics.alive(CLOUD, 0)]}
     uav = _AGENT.match(role).group(1)
     return {"publish": [topics.action(uav), *_events(topics, WeightsRefused)],
             "see_subscribers": [topics.action("*")],
-            "subscribe": [topics.observation(uav), *weights],
+            "subscribe": [topics.observation(uav), topics.measurement_round(uav), *weights],
             "ask": [*weights, topics.measurements(uav)],
             "serve": [topics.status("agent", uav)],
             "be_asked": [every_status],

@@ -99,6 +99,9 @@ class AgentObservation(Message):
     # Where the UAV flies once this mission ends (the next in its mission queue; none when
     # the world has not planned one), so that its agent prepares that route between decisions.
     next_destination: Place | None = None
+    # The SINR map version to decide on, when the cloud is on the lockstep clock (RoundClosed):
+    # the one in service at this step, not the newest the agent holds. None: the newest.
+    sinr_version: Count | None = None
 
     @model_validator(mode="after")
     def _same_length(self) -> AgentObservation:
@@ -112,7 +115,8 @@ class AgentObservation(Message):
     def of_row(cls, observation: Observation, row: int, episode: int, uav: int,
                measured: list[tuple[float, float, int]] = (),
                others: np.ndarray | None = None,
-               next_destination: np.ndarray | None = None) -> AgentObservation:
+               next_destination: np.ndarray | None = None,
+               sinr_version: int | None = None) -> AgentObservation:
         """Row ``row`` of ``observation``, with only the others the mask ``others`` (M,)
         keeps (``shared.features.decision_relevant``), in their order; all without it."""
         o = observation
@@ -130,6 +134,7 @@ class AgentObservation(Message):
             measured=list(measured),
             next_destination=(None if next_destination is None
                               else tuple(np.asarray(next_destination, dtype=float).tolist())),
+            sinr_version=sinr_version,
         )
 
     def observation(self) -> Observation:
@@ -151,6 +156,44 @@ class AgentObservation(Message):
             others_radius=np.array(self.others_radius, dtype=np.float64).reshape(1, others),
             others_present=np.array(self.others_present, dtype=bool).reshape(1, others),
         )
+
+
+# -- the cloud on the lockstep clock ------------------------------------------------------------
+# With the online map in lockstep, every world step is a round: the world hands each UAV's
+# agent what its receiver reported along the step (MeasurementRound) and tells the cloud whose
+# uploads to expect (RoundOpened); the agents upload at once, tagged with the round; the cloud
+# takes the round's uploads as one batch, in UAV order, finishes what they trigger and answers
+# with the map in service and the rounds from which the ones published fly (RoundClosed). The
+# world goes on only then, and names the map in service in each observation: a seed gives the
+# maps, steps and outcomes of ``jamnav eval --method proposed``.
+class MeasurementRound(Message):
+    """What UAV ``uav``'s receiver reported along world step ``round`` (counted over the run),
+    for its agent to upload at once."""
+
+    round: Count
+    episode: Count
+    step: Count  # the UAV's step in its episode after that flight: the measurements' step
+    uav: UavId
+    flown_s: Finite  # seconds of flight of the run at the end of that step: the reports' clock
+    measured: list[tuple[Coordinate, Coordinate, Level]] = Field(max_length=MAX_REPORTS)
+
+
+class RoundOpened(Message):
+    """The world to the cloud: the agents of ``uavs`` upload their reports of ``round``."""
+
+    round: Count
+    flown_s: Finite
+    uavs: list[UavId] = Field(max_length=MAX_UAVS)
+
+
+class RoundClosed(Message):
+    """The cloud to the world: ``round``'s uploads are stored and what they triggered is done.
+    ``serving`` is the map version the decisions after it fly; ``pending`` the versions
+    published and not in service yet, each with the round whose decisions first fly it."""
+
+    round: Count
+    serving: Count
+    pending: list[tuple[Count, Count]] = Field(default_factory=list, max_length=1024)
 
 
 class Action(Message):
@@ -197,7 +240,16 @@ class MeasurementUpload(Message):
 
     max_bytes: ClassVar[int] = 512 * 1024
     uav: UavId
-    measurements: list[Measurement] = Field(min_length=1, max_length=MAX_UPLOAD)
+    measurements: list[Measurement] = Field(max_length=MAX_UPLOAD)
+    # A round's upload (the cloud on the lockstep clock), which may hold nothing: the cloud
+    # waits for one from every agent the round names.
+    round: Count | None = None
+
+    @model_validator(mode="after")
+    def _something_or_a_round(self) -> MeasurementUpload:
+        if not self.measurements and self.round is None:
+            raise ValueError("measurements: an upload outside a round holds at least one")
+        return self
 
 
 class UploadReceipt(Message):
@@ -490,12 +542,13 @@ def encode(message: Message) -> bytes:
     return msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
 
 
-def encode_upload(uav: int, records: Iterable[tuple]) -> bytes:
+def encode_upload(uav: int, records: Iterable[tuple], round: int | None = None) -> bytes:
     """``encode`` of a ``MeasurementUpload`` of ``records``, each a tuple of a ``Measurement``'s
     field values in ``MEASUREMENT_FIELDS`` order, without a model per record: an agent uploads
     the records it made itself, and the cloud validates each one on receipt."""
     measurements = [dict(zip(MEASUREMENT_FIELDS, record, strict=True)) for record in records]
-    return msgpack.packb({"uav": uav, "measurements": measurements}, use_bin_type=True)
+    return msgpack.packb({"uav": uav, "measurements": measurements, "round": round},
+                         use_bin_type=True)
 
 
 def _unpack(payload: bytes, max_bytes: int) -> Any:

@@ -86,6 +86,15 @@ class Topics:
     def action(self, uav: int | str) -> str:
         return f"{self.prefix}/uav/{uav}/action"
 
+    def measurement_round(self, uav: int | str) -> str:
+        """The cloud on the lockstep clock: one UAV's reports of a round, for its agent."""
+        return f"{self.prefix}/uav/{uav}/measurement_round"
+
+    @property
+    def round_opened(self) -> str:
+        """The cloud on the lockstep clock: whose uploads a round brings (world to cloud)."""
+        return f"{self.prefix}/world/round"
+
     def measurements(self, uav: int | str) -> str:
         return f"{self.prefix}/uav/{uav}/measurements"
 
@@ -97,6 +106,11 @@ class Topics:
     @property
     def sinr_map(self) -> str:
         return f"{self.prefix}/cloud/weights/sinr_map"
+
+    @property
+    def round_closed(self) -> str:
+        """The cloud on the lockstep clock: a round done, its maps' service (cloud to world)."""
+        return f"{self.prefix}/cloud/round"
 
     @property
     def jammer_estimate(self) -> str:

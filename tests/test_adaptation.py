@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cloud_service.evaluation import swapping_jammers, transient_episodes
+from cloud_service.evaluation import transient_episodes
 from cloud_service.sinr_mapping import ChangeDetector
 from shared.measurements import SpotFilter
 from shared.messages import (
@@ -29,6 +29,7 @@ from shared.scenario import load_scenario
 from shared.topics import Topics
 from tests.conftest import variant
 from world_sim.core import VectorWorld, episode_seed
+from world_sim.jammers import swapping_jammers
 
 
 # -- what a UAV keeps -------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from cloud_service.evaluation import evaluate
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
 from jamnav.cli import main as jamnav
 from shared.measurements import MeasurementSpec
+from shared.paper import JammerSetting
 from shared.scenario import load_scenario, resolve_scenario_path
 from shared.shipped import SINR_MAP_NO_JAMMER
 from tests.support import free_endpoint, gone, wait_until
@@ -153,3 +154,47 @@ def test_agents_measure_and_upload_what_the_in_process_evaluation_uploads(superv
     on_the_bus = _reports_in(tmp_path / "run" / RUN_DIR_FILE, world)
     in_process = _reports_in(tmp_path / "eval" / "measurements.sqlite", world)
     assert len(in_process) > 100 and on_the_bus == in_process
+
+
+def _memory_rows(path: Path, scenario) -> list[tuple]:
+    """A memory's measurements in the order they arrived, all but their ids (an agent's and
+    the in-process evaluation's differ): source, step, time, level and features."""
+    with SinrMemory(path, MeasurementSpec.of(scenario)) as memory:
+        stored = memory.recent(memory.count())
+    return list(zip(stored.sources, stored.steps.tolist(), stored.times.tolist(),
+                    stored.levels.tolist(), map(tuple, stored.features.tolist()), strict=True))
+
+
+@pytest.mark.parametrize("latency", [None, 0.0], ids=["scenario-latency", "no-latency"])
+def test_the_cloud_on_the_lockstep_clock_flies_eval_s_maps_and_outcomes(supervisor, tmp_path,
+                                                                       latency):
+    """Lockstep with the online map puts the cloud on the clock: each step's uploads are
+    taken, and what they trigger finished, before the world goes on, in simulated time. The
+    same seed, jammers (a fresh one every 2 episodes) and cloud latency then give what
+    ``jamnav eval --method proposed`` gives: the same maps, published at the same flight
+    times (so in service at the same steps), the same stored measurements, in order, and the
+    same per-UAV outcomes."""
+    run = tmp_path / "run"
+    extra = [] if latency is None else ["--cloud-latency", str(latency)]
+    process = supervisor("--uavs", "3", "--episodes", "4", "--lockstep", "--map", "online",
+                         "--jammer", "0,0,1", "--swap-every", "2", "--seed", "5",
+                         "--deadline", "10", "--no-figures", *extra,
+                         "--endpoint", free_endpoint(), "--run-dir", str(run))
+    _, err = process.communicate(timeout=400)
+    assert process.returncode == 0, err[-2000:]
+    report = json.loads((run / "report.json").read_text())
+    scenario = load_scenario()
+    if latency is not None:
+        scenario = scenario.changed({"online_map.cloud_latency_s": latency})
+    expected = evaluate(scenario, "proposed", 4, 5, JammerSetting(0.0, 0.0, 1.0), 3,
+                        swap_every=2, memory_dir=tmp_path / "eval")
+    published = [(e["t"], e["sha256"]) for e in expected["events"]
+                 if e["type"] == "sinr_weights_published"]
+    cards = sorted((json.loads(card.read_text()) for card in
+                    (run / "sinr_maps").glob("sinr_map_v*.json")), key=lambda c: c["version"])
+    assert len(published) >= 2  # the jammer was met, and the maps followed it
+    assert [(card["flown_s"], card["sha256"]) for card in cards] == published
+    assert _memory_rows(run / RUN_DIR_FILE, scenario) == _memory_rows(
+        tmp_path / "eval" / "measurements.sqlite", scenario)
+    assert report["outcomes"] == expected["outcomes"]
+    assert report["missed_deadlines"] == 0

@@ -5,6 +5,9 @@ follows new versions (subscriptions), checking each one's digest and shape and k
 last good one otherwise. For every observation the world sends it, it publishes an action and
 records its SINR measurement; measurements go to the cloud in small batches.
 
+On the lockstep clock with the online map (``shared.messages``, MeasurementRound) it uploads
+each round's reports at once and decides on the map version the world names.
+
 It knows what the paper's UAV knows: its own state and missions, its own SINR measurements, the
 other UAVs' positions and velocities, and the maps the cloud sends. Nothing else reaches it
 (no jammer, no other UAV's destination), and it imports only ``shared``.
@@ -34,6 +37,7 @@ from shared.messages import (
     Action,
     AgentObservation,
     JoinReply,
+    MeasurementRound,
     ProcessStatus,
     SinrMap,
     ValueWeights,
@@ -65,6 +69,13 @@ TIMINGS_KEPT = 4096
 # destination, they would pile up for as long as one map is flown (12 KiB each on icc2021,
 # 41 KiB in the city: 49 and 166 MiB at the in-process default of 4,096).
 ROUTE_FIELDS_KEPT = 4
+# Maps kept by version: the lockstep clock names the one in service, which a newer one that
+# is not due yet may have followed.
+MAPS_KEPT = 8
+MAP_WAIT_S = 30.0  # how long a decision waits for the map version the world names
+# A round's receipt comes once the cloud has taken the whole round, a refit included, which
+# runs without a wall-clock budget on the lockstep clock.
+ROUND_RECEIPT_S = 300.0
 
 
 class Models:
@@ -77,6 +88,7 @@ class Models:
         self.radio_map: RasterMap | None = None
         self.value_version: int | None = None
         self.sinr_version: int | None = None
+        self.maps: dict[int, RasterMap] = {}  # the last MAPS_KEPT versions, built
         self.destination: tuple[float, float] | None = None  # where the UAV is flying now
 
     @property
@@ -121,7 +133,18 @@ class Models:
             self.policy, self.value_version = built, update.version
         else:
             self.radio_map, self.sinr_version = built, update.version
+            self.maps[update.version] = built
+            for old in sorted(self.maps)[:-MAPS_KEPT]:
+                del self.maps[old]
         self.log.info("using %s version %d", type(update).__name__, update.version)
+
+    def fly_version(self, version: int) -> bool:
+        """Fly SINR map ``version`` (the one the lockstep clock puts in service); False while
+        it is not built."""
+        built = self.maps.get(version)
+        if built is not None:
+            self.radio_map, self.sinr_version = built, version
+        return built is not None
 
     def _newer(self, update: ValueWeights | SinrMap) -> bool:
         current = self.value_version if isinstance(update, ValueWeights) else self.sinr_version
@@ -188,6 +211,8 @@ class AgentService:
         self._declared = [
             bus.subscribe(session, topics.observation(uav), AgentObservation,
                           self._on_observation, self.dropped),
+            bus.subscribe(session, topics.measurement_round(uav), MeasurementRound,
+                          self._on_observation, self.dropped),
             bus.subscribe(session, topics.value_weights, ValueWeights, self.updates.put,
                           self.dropped, lambda why: self.updates.put(("value", None, why))),
             bus.subscribe(session, topics.sinr_map, SinrMap, self.updates.put, self.dropped,
@@ -196,7 +221,7 @@ class AgentService:
         ]
         self.token = None
 
-    def _on_observation(self, observation: AgentObservation) -> None:
+    def _on_observation(self, observation: AgentObservation | MeasurementRound) -> None:
         self.observations.put((time.perf_counter(), observation))
 
     def status(self) -> ProcessStatus:
@@ -257,10 +282,18 @@ class AgentService:
             while not self.observations.empty():  # behind (realtime): act on the newest
                 received.append(self.observations.get_nowait())
             self._take_updates()
-            arrived, observation = received[-1]
+            seen = []
+            for arrived, item in received:
+                if isinstance(item, MeasurementRound):
+                    self._upload_round(item)
+                else:
+                    seen.append((arrived, item))
+            if not seen:
+                continue
+            arrived, observation = seen[-1]
             self._act(arrived, observation)
-            for _, seen in received:
-                self._measure(seen)
+            for _, each in seen:
+                self._measure(each)
             self._sweep_ahead(observation)
 
     def _sweep_ahead(self, observation: AgentObservation) -> None:
@@ -320,7 +353,22 @@ class AgentService:
             t=time.time(), source=f"agent-{self.uav}", uav=self.uav, weights=kind,
             version=version, reason=reason[:500], flying_on=flying_on))
 
+    def _fly_version(self, version: int) -> None:
+        """Fly the map version the world names, once built (it was published before the
+        world named it); the newest held if it does not come in MAP_WAIT_S."""
+        deadline = time.monotonic() + MAP_WAIT_S
+        while not self.models.fly_version(version):
+            if time.monotonic() > deadline:
+                self.log.warning("SINR map version %d never came; flying version %s",
+                                 version, self.models.sinr_version)
+                return
+            time.sleep(0.002)
+            self._take_updates()
+
     def _act(self, arrived: float, observation: AgentObservation) -> None:
+        if (observation.sinr_version is not None
+                and observation.sinr_version != self.models.sinr_version):
+            self._fly_version(observation.sinr_version)
         cpu = time.thread_time()
         self.models.destination = observation.destination
         decision = self.models.policy.decide(observation.observation(), self.models.radio_map)
@@ -335,22 +383,38 @@ class AgentService:
     def _measure(self, observation: AgentObservation) -> None:
         """Queue for upload what the receiver reported along the step, the same reports
         (de-duplicated by the same rule) as an in-process evaluation uploads."""
-        if not observation.measured:
-            return
-        reports = np.array(observation.measured, dtype=np.float64)
+        taken = self._kept(observation.measured, observation.step, time.time())
+        if taken:
+            self.outbox.add(taken, self.upload_every)
+
+    def _upload_round(self, measurement_round: MeasurementRound) -> None:
+        """Upload a round's reports at once, stamped with the run's flight time along the
+        step as ``jamnav eval`` stamps them."""
+        count = len(measurement_round.measured)
+        taken_at = measurement_round.flown_s - self.scenario.timing.step_s * (
+            1 - np.arange(1, count + 1) / max(count, 1))
+        self.uploader.send_round(
+            self._kept(measurement_round.measured, measurement_round.step, taken_at),
+            measurement_round.round, ROUND_RECEIPT_S)
+
+    def _kept(self, measured: list, step: int, taken_at: float | np.ndarray) -> list[tuple]:
+        """The records of the reports ``measured`` (x, y, level) that the spot filter keeps,
+        each taken at ``taken_at`` (one time, or one per report)."""
+        if not measured:
+            return []
+        reports = np.array(measured, dtype=np.float64)
         levels = reports[:, 2].astype(np.int64)
         kept = self.spots.keep(self.spots_row, reports[None, :, :2], levels[None])[0]
         if not kept.any():
-            return
+            return []
         features = scenario_features(self.scenario, reports[kept, :2])
-        now = time.time()
+        times = np.broadcast_to(np.asarray(taken_at, dtype=np.float64), kept.shape)[kept]
         # Records as the outbox holds them, not models: the agent's own numbers, a few a step,
         # and the cloud checks every measurement on receipt (MeasurementSpec).
-        taken = [(f"{self.id_prefix}{next(self.measured)}", self.source, observation.step, now,
-                  row.tobytes(), level)
-                 for row, level in zip(features.astype(FEATURES_DTYPE, copy=False),
-                                       levels[kept].tolist(), strict=True)]
-        self.outbox.add(taken, self.upload_every)
+        return [(f"{self.id_prefix}{next(self.measured)}", self.source, step, when,
+                 row.tobytes(), level)
+                for row, level, when in zip(features.astype(FEATURES_DTYPE, copy=False),
+                                            levels[kept].tolist(), times.tolist(), strict=True)]
 
 
 def join(session, topics: Topics, stop: threading.Event, log: logging.Logger) -> int | None:

@@ -277,6 +277,20 @@ class Outbox:
             if self._file is not None:
                 self._file.mark(self.ledger)
 
+    def passed(self, taken: int, receipt: UploadReceipt | None) -> None:
+        """Account for ``taken`` records that went to the cloud past the outbox (a round's, on
+        the lockstep clock): acknowledged with ``receipt``, or dropped without one."""
+        with self._cond:
+            self.ledger.taken += taken
+            if receipt is None:
+                self.ledger.overflowed += taken
+            else:
+                self.ledger.acknowledged += taken
+                self.ledger.refused += receipt.refused
+                self.ledger.duplicates += receipt.duplicates
+            if self._file is not None:
+                self._file.mark(self.ledger)
+
     def tidy(self) -> None:
         """Rewrite the file once enough of it is released. The sender calls this between
         uploads: the flight loop never rewrites, at most it waits for one to end."""
@@ -363,6 +377,25 @@ class Uploader:
         self.uploads += 1
         self.outbox.acknowledge(batch[-1][0], refused, duplicates)
         return True
+
+    def send_round(self, records: list[tuple], round_number: int, timeout: float) -> None:
+        """The cloud on the lockstep clock: a round's records (as the outbox holds them; maybe
+        none) in one upload tagged with the round, at once and from the flight
+        loop, as the world waits for the round. They pass the outbox: a round closes without
+        an upload that does not arrive in time, so one is never sent again."""
+        upload = encode_upload(self.uav, [_measurement_row(record) for record in records],
+                               round_number)
+        try:
+            receipt = bus.query(self.session, self.key, UploadReceipt, upload, timeout=timeout)
+        except bus.BusError as exc:
+            self.failures += 1
+            self.log.warning("round %d: upload of %d measurements lost: %s", round_number,
+                             len(records), exc)
+            receipt = None
+        else:
+            self.uploads += 1
+            self.stored += receipt.stored
+        self.outbox.passed(len(records), receipt)
 
     def counts(self) -> dict[str, int]:
         ledger = self.outbox.ledger

@@ -8,6 +8,12 @@ episode it publishes the UAV outcomes. Two clocks:
   deadline. Deterministic: the same seed gives the same episodes as ``jamnav eval``.
 - ``realtime``: steps at a fixed rate; whatever action arrived for the current step is used.
 
+With ``cloud_clock`` (lockstep, online map) the cloud is part of the clock: after each step the
+world hands every UAV's agent its reports (``MeasurementRound``), waits until the cloud has
+taken the round (``RoundClosed``), and names the map in service in each observation.
+With ``swap_every`` the jammer moves to a fresh random setting every K episodes, the ones
+``jamnav eval --swap-every K`` flies (``world_sim.jammers``).
+
 Either way a UAV without a fresh action keeps its last velocity, and the miss is counted.
 Zenoh callbacks only store what they receive; the main loop does all the work.
 """
@@ -36,8 +42,11 @@ from shared.messages import (
     JammerInfo,
     JammerReply,
     JoinReply,
+    MeasurementRound,
     MessageError,
     ProcessStatus,
+    RoundClosed,
+    RoundOpened,
     RunFinished,
     UavOutcomes,
     WorldState,
@@ -46,10 +55,13 @@ from shared.messages import (
     outcome_labels,
 )
 from shared.neighbours import nearby_others
+from shared.paper import JammerSetting
 from shared.radio import RadioModel
 from shared.scenario import MAX_UAVS, Scenario, ScenarioError, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
+from world_sim.cloud_rounds import CloudRounds
 from world_sim.core import VectorWorld, episode_seed
+from world_sim.jammers import swapping_jammers
 
 ROLE = "world"
 JOIN_HOLD_S = 10.0  # an id handed out is kept for its agent this long, waiting for its token
@@ -67,6 +79,11 @@ class WorldConfig:
     rate: float = 10.0  # realtime: steps per second of wall time
     deadline: float = 2.0  # lockstep: seconds to wait for the actions of a step
     start_timeout: float = 60.0  # how long the first episode waits for every agent
+    cloud_clock: bool = False  # lockstep with the online map: each step waits for the cloud
+    # How long a round waits for the cloud: a refit runs without a wall-clock budget on the
+    # lockstep clock and takes seconds on a busy machine.
+    cloud_deadline: float = 300.0
+    swap_every: int | None = None  # a fresh random jammer every K episodes
 
 
 class Mailbox:
@@ -201,6 +218,12 @@ class JammerDesk:
         with self._lock:
             return self._current
 
+    def schedule(self, jammer: JammerInfo | None) -> None:
+        """The run's jammer schedule moves the jammer, as a command would."""
+        with self._lock:
+            if jammer != self._accepted_last():
+                self._pending.append(jammer)
+
     def take(self) -> list[JammerInfo | None]:
         """The commands accepted since the last call, in order."""
         with self._lock:
@@ -234,6 +257,10 @@ class WorldService:
         self.dropped = bus.Dropped(log)
         self.mailbox = Mailbox(config.uavs)
         self.desk = JammerDesk(scenario, jammer, self.dropped, topics.jammer_control)
+        first = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
+        self.jammer_at = swapping_jammers(scenario, first, config.swap_every, config.seed)
+        self.flown_s = 0.0  # the run's seconds of flight: the reports' clock
+        self.cloud_waits = 0  # rounds the cloud did not close in time
         self.episode = config.first_episode
         self.next_destinations: np.ndarray  # (uavs, 2): drawn at each episode's start
         self.steps = 0
@@ -247,7 +274,14 @@ class WorldService:
         # The outcomes are the run's record: a supervisor that missed some gets them again.
         self.outcomes_pub = bus.recoverable_publisher(session, topics.event("uav_outcomes"),
                                                       OUTCOMES_KEPT)
+        self.rounds = CloudRounds()
+        if config.cloud_clock:
+            self.round_pubs = [bus.reliable_publisher(session, topics.measurement_round(uav),
+                                                      True) for uav in range(config.uavs)]
+            self.opened_pub = bus.reliable_publisher(session, topics.round_opened)
         self._declared = [
+            bus.subscribe(session, topics.round_closed, RoundClosed, self.rounds.put,
+                          self.dropped),
             bus.subscribe(session, topics.action("*"), Action, self._on_action, self.dropped),
             session.liveliness().declare_subscriber(topics.alive("agent"),
                                                     self.mailbox.on_presence, history=True),
@@ -281,6 +315,7 @@ class WorldService:
                 "live_agents": len(self.mailbox.live()), "steps": self.steps,
                 "steps_per_second": self.steps_per_second(), "missed_deadlines": self.missed,
                 "unattended_steps": self.unattended, "finished": self.finished,
+                "cloud_clock": self.config.cloud_clock, "cloud_waits": self.cloud_waits,
                 "jammer": "off" if jammer is None else
                 f"{jammer.x:g},{jammer.y:g},{jammer.power_w:g},{jammer.height_m:g}",
             },
@@ -317,6 +352,9 @@ class WorldService:
         """One episode; True when it ran to its end."""
         world, config = self.world, self.config
         seed = episode_seed(config.seed, self.episode)
+        if config.swap_every is not None and self.episode % config.swap_every == 0:
+            self.desk.schedule(self._scheduled_jammer())
+            self._apply_jammer()  # before the reset, which reads the jammer's levels
         world.reset([0], [seed])
         # Each UAV's next mission, announced with this one's observations so that its agent
         # prepares the route before it needs it (missions are drawn from the episode's own
@@ -346,6 +384,9 @@ class WorldService:
                 return False
             result = world.step(*self._commands(actions, active))
             self.steps += 1
+            self.flown_s += world.dt
+            if config.cloud_clock and not self._cloud_round(stop):
+                return False
             self.stepping_seconds += time.monotonic() - started
             if result.env_done[0]:
                 self._publish_state()
@@ -355,6 +396,36 @@ class WorldService:
                 return True
             if out_of_time():
                 return False
+
+    def _scheduled_jammer(self) -> JammerInfo | None:
+        """The jammer the run's schedule sets for this episode, the first of a period."""
+        if self.episode < self.config.swap_every:  # the run's own, until the first swap
+            return self.desk.current()
+        setting = self.jammer_at(self.episode)
+        return JammerInfo(x=setting.x, y=setting.y, power_w=setting.power_w,
+                          height_m=self.scenario.jammer.height_m)
+
+    def _cloud_round(self, stop: threading.Event) -> bool:
+        """Hand each UAV's agent what its receiver reported along the step just flown, and
+        wait until the cloud has taken them (False: stopped meanwhile)."""
+        w, number = self.world, self.steps
+        measured = np.flatnonzero(w.measured[0]).tolist()
+        if not measured:
+            return True
+        for uav in measured:
+            self.round_pubs[uav].put(encode(MeasurementRound(
+                round=number, episode=self.episode, step=int(w.steps[0]), uav=uav,
+                flown_s=self.flown_s, measured=self._reports(uav))))
+        live = self.mailbox.live()
+        self.opened_pub.put(encode(RoundOpened(round=number, flown_s=self.flown_s,
+                                               uavs=[uav for uav in measured if uav in live])))
+        if not self.rounds.wait(number, time.monotonic() + self.config.cloud_deadline, stop):
+            if stop.is_set():
+                return False
+            self.cloud_waits += 1
+            self.log.warning("round %d: the cloud did not close it in %.0f s", number,
+                             self.config.cloud_deadline)
+        return True
 
     def _apply_jammer(self) -> None:
         for jammer in self.desk.take():
@@ -372,10 +443,12 @@ class WorldService:
             if uav < self.config.uavs and not bus.wait_matching(self.observation_pubs[uav], 2.0):
                 self.log.warning("agent %d is live but not subscribed", uav)
         observation, relevant = fleet_observation(w, self.scenario)
+        flown = self.rounds.flown_at(self.steps)  # the rounds hand the reports over instead
         for uav in sorted(active):
             self.observation_pubs[uav].put(encode(AgentObservation.of_row(
-                observation, uav, self.episode, uav, self._reports(uav), relevant[uav],
-                self.next_destinations[uav])))
+                observation, uav, self.episode, uav,
+                [] if self.config.cloud_clock else self._reports(uav), relevant[uav],
+                self.next_destinations[uav], flown)))
         self._publish_state()
 
     def _reports(self, uav: int) -> list[tuple[float, float, int]]:
@@ -433,6 +506,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--rate", type=float, default=10.0, help="realtime steps per second")
     parser.add_argument("--deadline", type=float, default=2.0, help="lockstep seconds")
     parser.add_argument("--start-timeout", type=float, default=60.0)
+    parser.add_argument("--cloud-clock", action="store_true",
+                        help="lockstep with the online map: each step waits for the cloud to "
+                             "take its reports (the cloud runs --clock lockstep)")
+    parser.add_argument("--swap-every", type=int, default=None, metavar="K",
+                        help="move the jammer to a fresh random setting every K episodes")
     jam = parser.add_mutually_exclusive_group()
     jam.add_argument("--jammer", metavar="X,Y,P[,H]")
     jam.add_argument("--no-jammer", action="store_true")
@@ -461,7 +539,9 @@ def main(argv: list[str] | None = None) -> int:
         uavs = scenario.missions.uav_count if args.uavs is None else args.uavs
         if not 1 <= uavs <= MAX_UAVS:
             raise ValueError(f"--uavs must be between 1 and {MAX_UAVS}")
-        for name in ("episodes", "duration", "rate", "deadline"):
+        if args.cloud_clock and args.clock != "lockstep":
+            raise ValueError("--cloud-clock needs --clock lockstep")
+        for name in ("episodes", "duration", "rate", "deadline", "swap_every"):
             value = getattr(args, name)
             if value is not None and not value > 0:
                 raise ValueError(f"--{name} must be positive")
@@ -469,7 +549,8 @@ def main(argv: list[str] | None = None) -> int:
         config = WorldConfig(uavs=uavs, seed=args.seed, episodes=args.episodes,
                              duration=args.duration, first_episode=args.first_episode,
                              clock=args.clock, rate=args.rate, deadline=args.deadline,
-                             start_timeout=args.start_timeout)
+                             start_timeout=args.start_timeout, cloud_clock=args.cloud_clock,
+                             swap_every=args.swap_every)
         topics = Topics(args.prefix)
         endpoint = endpoint_from(args.endpoint)
         login = access.login_for(args.credentials, access.WORLD)
