@@ -656,7 +656,22 @@ class Supervisor:
                 for s in statuses if s.role == "agent"},
             "measurements": {**measurement_counts(statuses),
                              "memory_of_earlier_runs": self.memory_existed},
+            "cloud_latency": self._cloud_latency(),
         }
+
+    def _cloud_latency(self) -> dict[str, Any] | None:
+        """What the cloud's work cost in flight: on the lockstep clock the latency the maps
+        flew after (the scenario's, or --cloud-latency); in real time each map's delay after
+        the detection of its change, in wall seconds and in seconds of flight at the run's
+        pace."""
+        c = self.config
+        if c.map != "online":
+            return None
+        if self.cloud_clock:
+            return {"clock": "lockstep", "latency_s": self.scenario.online_map.cloud_latency_s
+                    if c.cloud_latency is None else c.cloud_latency}
+        return {"clock": "wall", "maps": map_delays(
+            self.events, c.rate * self.scenario.timing.step_s)}
 
 
 def recording_path(path: Path, restarts: int) -> Path:
@@ -706,6 +721,30 @@ def swap_rates(events: list[dict[str, Any]], outcomes: dict[int, list[str]]
     return {"episode": change["episode"],
             "before": success([k for k in outcomes if k < change["episode"]]),
             "after": success([k for k in outcomes if k >= change["episode"]])}
+
+
+def map_delays(events: list[dict[str, Any]], flight_per_wall_s: float) -> list[dict[str, Any]]:
+    """Each map published after a detected change: how long after the detection, in wall
+    seconds and in seconds of flight."""
+    delays, detected = [], None
+    for event in events:
+        if event["type"] == "change_detected":
+            detected = event["t"]
+        elif event["type"] == "sinr_weights_published" and detected is not None:
+            wall = event["t"] - detected
+            delays.append({"version": event["version"], "after_detection_s": round(wall, 3),
+                           "flight_s": round(wall * flight_per_wall_s, 3)})
+    return delays
+
+
+def latency_line(latency: dict[str, Any]) -> str | None:
+    if latency["clock"] == "lockstep":
+        return f"maps fly {latency['latency_s']:g} s of flight after their uploads (lockstep)"
+    if not latency["maps"]:
+        return None
+    first = latency["maps"][0]
+    return (f"first map {first['after_detection_s']:.1f} s after the detection (wall), "
+            f"{first['flight_s']:.0f} s of flight; {len(latency['maps'])} maps in all")
 
 
 def fleet_line(state: WorldState, shown: int = 8) -> str:
@@ -773,6 +812,8 @@ def summary_table(report: dict[str, Any]) -> str:
     rows.append("  dropped        " + (", ".join(f"{k} {v}" for k, v in dropped.items())
                                        or "none"))
     rows.append(f"  measurements   {measurement_line(report['measurements'])}")
+    if (latency := report.get("cloud_latency")) and (line := latency_line(latency)):
+        rows.append(f"  cloud latency  {line}")
     rows += [f"  {line}" for line in map_history(report["events"])]
     return "\n".join(rows)
 

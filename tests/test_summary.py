@@ -6,7 +6,7 @@ from __future__ import annotations
 import inspect
 
 from cloud_service.evaluation import evaluate, load_policy
-from jamnav.supervisor import summary_table, swap_rates
+from jamnav.supervisor import map_delays, summary_table, swap_rates
 from shared.shipped import (
     DEFAULT_VALUE_NET,
     EXTENDED_CROWD_VALUE_NET,
@@ -108,3 +108,19 @@ def test_the_library_flies_the_best_network_by_default_too(scenario, monkeypatch
         evaluate(scenario, "perfect", 1, 0, None, uavs)
     assert flown == [EXTENDED_VALUE_NET, EXTENDED_CROWD_VALUE_NET]
     assert DEFAULT_VALUE_NET == "extended"
+
+
+def test_the_clouds_latency_is_told_in_wall_seconds_and_in_flight():
+    """Real time at 20 steps of 1 s a second: a map 1.5 s after its change was detected cost
+    30 s of flight; maps before any detection are no answer to a change."""
+    events = [{"type": "sinr_weights_published", "t": 90.0, "version": 1},
+              {"type": "change_detected", "t": 100.0, "version": 1},
+              {"type": "sinr_weights_published", "t": 101.5, "version": 2},
+              {"type": "sinr_weights_published", "t": 103.0, "version": 3}]
+    delays = map_delays(events, 20.0)
+    assert delays == [{"version": 2, "after_detection_s": 1.5, "flight_s": 30.0},
+                      {"version": 3, "after_detection_s": 3.0, "flight_s": 60.0}]
+    wall = summary_table(_report(cloud_latency={"clock": "wall", "maps": delays}))
+    assert "cloud latency  first map 1.5 s after the detection (wall), 30 s of flight" in wall
+    lockstep = summary_table(_report(cloud_latency={"clock": "lockstep", "latency_s": 2.0}))
+    assert "maps fly 2 s of flight after their uploads (lockstep)" in lockstep
