@@ -167,8 +167,9 @@ class AgentObservation(Message):
 # world goes on only then, and names the map in service in each observation: a seed gives the
 # maps, steps and outcomes of ``jamnav eval --method proposed``.
 class MeasurementRound(Message):
-    """What UAV ``uav``'s receiver reported along world step ``round`` (counted over the run),
-    for its agent to upload at once."""
+    """What UAV ``uav``'s receiver reported along the world step of ``round`` (one a step,
+    numbered on from the world's start time in milliseconds), for its agent to upload at
+    once."""
 
     round: Count
     episode: Count

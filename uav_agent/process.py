@@ -75,7 +75,7 @@ MAPS_KEPT = 8
 MAP_WAIT_S = 30.0  # how long a decision waits for the map version the world names
 # A round's receipt comes once the cloud has taken the whole round, a refit included, which
 # runs without a wall-clock budget on the lockstep clock.
-ROUND_RECEIPT_S = 300.0
+ROUND_RECEIPT_S = 60.0
 
 
 class Models:

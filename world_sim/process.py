@@ -82,7 +82,7 @@ class WorldConfig:
     cloud_clock: bool = False  # lockstep with the online map: each step waits for the cloud
     # How long a round waits for the cloud: a refit runs without a wall-clock budget on the
     # lockstep clock and takes seconds on a busy machine.
-    cloud_deadline: float = 300.0
+    cloud_deadline: float = 60.0
     swap_every: int | None = None  # a fresh random jammer every K episodes
 
 
@@ -260,6 +260,9 @@ class WorldService:
         first = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
         self.jammer_at = swapping_jammers(scenario, first, config.swap_every, config.seed)
         self.flown_s = 0.0  # the run's seconds of flight: the reports' clock
+        # Round numbers go on from the wall clock's milliseconds: a restarted world's rounds
+        # are then never taken for ones the cloud closed before.
+        self.round_base = time.time_ns() // 1_000_000
         self.cloud_waits = 0  # rounds the cloud did not close in time
         self.episode = config.first_episode
         self.next_destinations: np.ndarray  # (uavs, 2): drawn at each episode's start
@@ -408,7 +411,7 @@ class WorldService:
     def _cloud_round(self, stop: threading.Event) -> bool:
         """Hand each UAV's agent what its receiver reported along the step just flown, and
         wait until the cloud has taken them (False: stopped meanwhile)."""
-        w, number = self.world, self.steps
+        w, number = self.world, self.round_base + self.steps
         measured = np.flatnonzero(w.measured[0]).tolist()
         if not measured:
             return True
@@ -443,7 +446,7 @@ class WorldService:
             if uav < self.config.uavs and not bus.wait_matching(self.observation_pubs[uav], 2.0):
                 self.log.warning("agent %d is live but not subscribed", uav)
         observation, relevant = fleet_observation(w, self.scenario)
-        flown = self.rounds.flown_at(self.steps)  # the rounds hand the reports over instead
+        flown = self.rounds.flown_at(self.round_base + self.steps)
         for uav in sorted(active):
             self.observation_pubs[uav].put(encode(AgentObservation.of_row(
                 observation, uav, self.episode, uav,
