@@ -26,12 +26,16 @@ LATENCIES_S = (0.0, 1.0, 2.0, 5.0, 10.0, 30.0, 60.0)
 
 def sweep(scenario: Scenario, latencies: Sequence[float], seeds: int, episodes: int,
           swap_every: int, uavs: int | None = None,
-          on_run: Callable[[str], None] | None = None) -> dict[str, Any]:
+          on_run: Callable[[dict[str, Any], str], None] | None = None) -> dict[str, Any]:
     """Every seed's perfect-map run and one proposed run per latency, the same episodes and
-    jammers each; returns the runs' rates (JSON-ready)."""
+    jammers each; returns the runs' rates (JSON-ready). ``on_run(result so far, label)``
+    after each run."""
     jammer = RadioModel.jammer_of(scenario)
     first = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
-    runs = []
+    runs: list[dict[str, Any]] = []
+    result = {"scenario": scenario.name, "episodes": episodes, "seeds": seeds,
+              "swap_every": swap_every, "uavs": uavs or scenario.missions.uav_count,
+              "latencies_s": [float(latency) for latency in latencies], "runs": runs}
     for seed in range(seeds):
         cases = [("perfect", None)] + [("proposed", latency) for latency in latencies]
         for method, latency in cases:
@@ -41,10 +45,19 @@ def sweep(scenario: Scenario, latencies: Sequence[float], seeds: int, episodes: 
             runs.append({"method": method, "cloud_latency_s": latency, "seed": seed,
                          **{key: report[key] for key in RATE_KEYS}})
             if on_run is not None:
-                on_run(f"seed {seed}, {method}" + ("" if latency is None else f", {latency:g} s"))
-    return {"scenario": scenario.name, "episodes": episodes, "seeds": seeds,
-            "swap_every": swap_every, "uavs": uavs or scenario.missions.uav_count,
-            "latencies_s": [float(latency) for latency in latencies], "runs": runs}
+                on_run(result, f"seed {seed}, {method}"
+                       + ("" if latency is None else f", {latency:g} s"))
+    return result
+
+
+def save_runs(result: dict[str, Any], out_dir: Path, command: str) -> Path:
+    """The runs so far, as ``cloud_latency_<scenario>.json``: a long sweep stopped keeps
+    what it flew."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / f"cloud_latency_{result['scenario']}.json"
+    path.write_text(json.dumps({**result, "command": command}, indent=1) + "\n",
+                    encoding="utf-8")
+    return path
 
 
 def summary(result: dict[str, Any]) -> list[dict[str, Any]]:
@@ -63,11 +76,8 @@ def summary(result: dict[str, Any]) -> list[dict[str, Any]]:
 
 def write_outputs(result: dict[str, Any], out_dir: Path, command: str) -> list[Path]:
     """``cloud_latency_<scenario>.json``, ``.md`` and ``.png`` in ``out_dir``."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    stem = out_dir / f"cloud_latency_{result['scenario']}"
+    stem = save_runs(result, out_dir, command).with_suffix("")
     rows = summary(result)
-    stem.with_suffix(".json").write_text(json.dumps({**result, "command": command}, indent=1)
-                                         + "\n", encoding="utf-8")
     lines = [f"Command: `{command}`. {result['uavs']} UAVs, {result['episodes']} episodes x "
              f"{result['seeds']} seeds, the jammer moved every {result['swap_every']} episodes; "
              "mean +- sd over the seeds, %.", "",

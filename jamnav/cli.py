@@ -529,7 +529,7 @@ MAX_ONLINE_PERIOD_S = 3600.0
 
 def cmd_cloud_latency(args: argparse.Namespace) -> int:
     from cloud_service.evaluation import EvaluationError
-    from cloud_service.latency_sweep import sweep, write_outputs
+    from cloud_service.latency_sweep import save_runs, sweep, write_outputs
 
     check_range("--episodes", args.episodes, 1)
     check_range("--seeds", args.seeds, 1, 100)
@@ -541,19 +541,19 @@ def cmd_cloud_latency(args: argparse.Namespace) -> int:
     scenario = scenario_with_jammer(args)
     check_fleet("--uavs", args.uavs or scenario.missions.uav_count, scenario, 0)
     _one_torch_thread()
-    runs, done = args.seeds * (len(latencies) + 1), 0
+    runs, command = args.seeds * (len(latencies) + 1), "jamnav " + " ".join(sys.argv[1:])
 
-    def on_run(label: str) -> None:
-        nonlocal done
-        done += 1
-        print(f"cloud-latency: run {done}/{runs}: {label}", file=sys.stderr, flush=True)
+    def on_run(so_far: dict, label: str) -> None:
+        save_runs(so_far, out, command)
+        print(f"cloud-latency: run {len(so_far['runs'])}/{runs}: {label}", file=sys.stderr,
+              flush=True)
 
     try:
         result = sweep(scenario, latencies, args.seeds, args.episodes, args.swap_every,
                        args.uavs, on_run)
     except EvaluationError as exc:
         raise UsageError(f"cloud-latency: {exc}") from None
-    paths = write_outputs(result, out, "jamnav " + " ".join(sys.argv[1:]))
+    paths = write_outputs(result, out, command)
     print(paths[1].read_text(encoding="utf-8"))
     print("wrote " + ", ".join(map(str, paths)), file=sys.stderr)
     return 0
