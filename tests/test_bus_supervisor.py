@@ -165,7 +165,8 @@ def _memory_rows(path: Path, scenario) -> list[tuple]:
                     stored.levels.tolist(), map(tuple, stored.features.tolist()), strict=True))
 
 
-@pytest.mark.parametrize("latency", [None, 0.0], ids=["scenario-latency", "no-latency"])
+@pytest.mark.parametrize("latency", [None, 0.0, 30.0],
+                         ids=["scenario-latency", "no-latency", "30-s-latency"])
 def test_the_cloud_on_the_lockstep_clock_flies_eval_s_maps_and_outcomes(supervisor, tmp_path,
                                                                        latency):
     """Lockstep with the online map puts the cloud on the clock: each step's uploads are

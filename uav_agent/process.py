@@ -69,9 +69,6 @@ TIMINGS_KEPT = 4096
 # destination, they would pile up for as long as one map is flown (12 KiB each on icc2021,
 # 41 KiB in the city: 49 and 166 MiB at the in-process default of 4,096).
 ROUTE_FIELDS_KEPT = 4
-# Maps kept by version: the lockstep clock names the one in service, which a newer one that
-# is not due yet may have followed.
-MAPS_KEPT = 8
 MAP_WAIT_S = 30.0  # how long a decision waits for the map version the world names
 # A round's receipt comes once the cloud has taken the whole round, a refit included, which
 # runs without a wall-clock budget on the lockstep clock.
@@ -88,7 +85,11 @@ class Models:
         self.radio_map: RasterMap | None = None
         self.value_version: int | None = None
         self.sinr_version: int | None = None
-        self.maps: dict[int, RasterMap] = {}  # the last MAPS_KEPT versions, built
+        # Built maps by version. On the lockstep clock the world names the version in service
+        # (``pinned``), which newer ones not due yet may have followed: those are kept until
+        # named. Otherwise the newest flies, and only it is kept.
+        self.maps: dict[int, RasterMap] = {}
+        self.pinned: int | None = None
         self.destination: tuple[float, float] | None = None  # where the UAV is flying now
 
     @property
@@ -132,19 +133,34 @@ class Models:
         if isinstance(update, ValueWeights):
             self.policy, self.value_version = built, update.version
         else:
-            self.radio_map, self.sinr_version = built, update.version
             self.maps[update.version] = built
-            for old in sorted(self.maps)[:-MAPS_KEPT]:
-                del self.maps[old]
-        self.log.info("using %s version %d", type(update).__name__, update.version)
+            if self.pinned is None:
+                self.radio_map, self.sinr_version = built, update.version
+            self._forget_before(self.sinr_version)
+        self.log.info("%s %s version %d", "holding" if self.pinned is not None else "using",
+                      type(update).__name__, update.version)
+
+    def pin(self) -> None:
+        """The lockstep clock has begun: from now on the world names the version to fly, and
+        it flies this one until then."""
+        if self.pinned is None:
+            self.pinned = self.sinr_version
 
     def fly_version(self, version: int) -> bool:
-        """Fly SINR map ``version`` (the one the lockstep clock puts in service); False while
-        it is not built."""
-        built = self.maps.get(version)
-        if built is not None:
-            self.radio_map, self.sinr_version = built, version
-        return built is not None
+        """Fly SINR map ``version``, the one the lockstep clock puts in service, from now on;
+        False while it may still come. One that never will (older than every version held:
+        an agent that started after it) is stood in for by the oldest held."""
+        held = sorted(self.maps)
+        if version not in self.maps and (not held or version > held[-1]):
+            return False
+        version = version if version in self.maps else next(v for v in held if v > version)
+        self.radio_map, self.sinr_version, self.pinned = self.maps[version], version, version
+        self._forget_before(version)
+        return True
+
+    def _forget_before(self, version: int) -> None:
+        for older in [kept for kept in self.maps if kept < version]:
+            del self.maps[older]
 
     def _newer(self, update: ValueWeights | SinrMap) -> bool:
         current = self.value_version if isinstance(update, ValueWeights) else self.sinr_version
@@ -390,6 +406,7 @@ class AgentService:
     def _upload_round(self, measurement_round: MeasurementRound) -> None:
         """Upload a round's reports at once, stamped with the run's flight time along the
         step as ``jamnav eval`` stamps them."""
+        self.models.pin()
         count = len(measurement_round.measured)
         taken_at = measurement_round.flown_s - self.scenario.timing.step_s * (
             1 - np.arange(1, count + 1) / max(count, 1))
