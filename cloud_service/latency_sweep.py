@@ -78,13 +78,15 @@ def write_outputs(result: dict[str, Any], out_dir: Path, command: str) -> list[P
     """``cloud_latency_<scenario>.json``, ``.md`` and ``.png`` in ``out_dir``."""
     stem = save_runs(result, out_dir, command).with_suffix("")
     rows = summary(result)
+    seeds = result["seeds"]
+    spread = "mean +- sd over the seeds" if seeds > 1 else "seed 0"
     lines = [f"Command: `{command}`. {result['uavs']} UAVs, {result['episodes']} episodes x "
-             f"{result['seeds']} seeds, the jammer moved every {result['swap_every']} episodes; "
-             "mean +- sd over the seeds, %.", "",
+             f"{seeds} seed{'s' if seeds > 1 else ''}, the jammer moved every "
+             f"{result['swap_every']} episodes; {spread}, %.", "",
              "| cloud latency (s) | success | disconnection | collision |", "|---|---|---|---|"]
     for row in rows:
         label = "perfect map" if row["cloud_latency_s"] is None else f"{row['cloud_latency_s']:g}"
-        cells = [f"{mean:.1f} +- {sd:.1f}" for mean, sd in
+        cells = [f"{mean:.1f}" + (f" +- {sd:.1f}" if seeds > 1 else "") for mean, sd in
                  (row[key] for key in ("success_rate", "disconnection_rate", "collision_rate"))]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     stem.with_suffix(".md").write_text("\n".join(lines) + "\n", encoding="utf-8")
