@@ -281,19 +281,24 @@ class CloudService:
         if self.rounds is None:
             _answer(query, self._ingest(upload.measurements))
         elif upload.round is None or self.rounds.stale(upload.round):
-            # On the lockstep clock, an upload outside its round (an earlier run's outbox, a
-            # round's upload after the round closed without it) is kept, not learned from:
-            # the mapper takes whole rounds only.
-            _answer(query, self._count(self.memory.append(upload.measurements),
-                                       len(upload.measurements)))
+            self._keep_outside_rounds(upload, query)
         else:
             self.rounds.add(upload, query)
+
+    def _keep_outside_rounds(self, upload: MeasurementUpload, query) -> None:
+        """On the lockstep clock, an upload outside a round of this world's (an earlier run's
+        outbox, a round's upload after the round closed without it, a round never opened) is
+        kept, not learned from: the mapper takes whole rounds only."""
+        _answer(query, self._count(self.memory.append(upload.measurements),
+                                   len(upload.measurements)))
 
     def _close_rounds(self) -> None:
         """Take every round whose uploads are in: store them in UAV order, have the mapper
         take them as one batch, answer the uploads and the world."""
         if self.rounds is None:
             return
+        for upload, query in self.rounds.unopened(time.monotonic()):
+            self._keep_outside_rounds(upload, query)
         while (closing := self.rounds.next_closing(time.monotonic())) is not None:
             opened, uploads = closing
             self.flown_s = opened.flown_s

@@ -17,8 +17,12 @@ from typing import Any
 from shared.messages import MeasurementUpload, RoundOpened
 
 # How long a round waits for the uploads it names: an agent that died after the world named it
-# must not stop the clock (the world itself waits for the round's close much longer).
+# must not stop the clock (the world itself waits for the round's close longer).
 ROUND_WAIT_S = 30.0
+# How long uploads wait for the world to open their round: it does so as it hands the agents
+# their reports, so a round unopened by then is no round of this world's (a forgery, or a
+# world gone), and its uploads are kept outside the rounds.
+OPEN_WAIT_S = 2.0
 
 
 def delay_rounds(latency_s: float, step_s: float) -> int:
@@ -71,6 +75,12 @@ class RoundDesk:
         del self._rounds[number]
         self.closed_through = number
         return current.opened, [current.uploads[uav] for uav in sorted(current.uploads)]
+
+    def unopened(self, now: float) -> list[tuple[MeasurementUpload, Any]]:
+        """The uploads of rounds the world has not opened within OPEN_WAIT_S, taken out."""
+        gone = [number for number, r in self._rounds.items()
+                if r.opened is None and now - r.since > OPEN_WAIT_S]
+        return [upload for number in gone for upload in self._rounds.pop(number).uploads.values()]
 
     def published(self, round_number: int, versions: list[int]) -> None:
         """Versions published while round ``round_number`` was taken: they fly from

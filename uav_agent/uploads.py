@@ -28,6 +28,7 @@ import time
 import zlib
 from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,6 +52,7 @@ DEFAULT_MAX_AGE_S = 0.25
 RECEIPT_TIMEOUT_S = 5.0  # a cloud busy retraining still answers well within this
 RETRY_FIRST_S, RETRY_MAX_S = 0.2, 2.0
 FLUSH_S = 3.0  # how long a stopping agent keeps trying to hand over what it holds
+ROUND_SENDERS = 4  # round uploads awaiting their receipts at once
 # An outbox file is rewritten once this many measurements (and at least as many as it holds)
 # were released since the last rewrite: it stays within about twice that size, and a rewrite
 # costs in proportion to what it holds, so each measurement pays for it at most once.
@@ -333,6 +335,11 @@ class Uploader:
         self.uploads = 0
         self.failures = 0  # uploads without a receipt (tried again)
         self.stored = 0
+        self._counts = threading.Lock()  # round uploads are answered on senders' threads
+        # Round uploads go out at once and their receipts are awaited off the flight loop: the
+        # world waits for the cloud's close of the round, not for the agent's receipt, and a
+        # round the world never opens (a forged one) is answered only after a while.
+        self._round_senders = ThreadPoolExecutor(ROUND_SENDERS, thread_name_prefix="round")
 
     def run(self, stop: threading.Event) -> None:
         """Until ``stop``; then try for ``FLUSH_S`` more to hand over what is left."""
@@ -347,6 +354,7 @@ class Uploader:
                 stop.wait(retry)
                 retry = min(2 * retry, RETRY_MAX_S)
             self.outbox.tidy()
+        self._round_senders.shutdown(wait=False, cancel_futures=True)
         deadline = time.monotonic() + FLUSH_S
         while (remaining := deadline - time.monotonic()) > 0:
             batch = self.outbox.wait_batch(self.batch, self.max_age, timeout=0, flush=True)
@@ -380,22 +388,27 @@ class Uploader:
 
     def send_round(self, records: list[tuple], round_number: int, timeout: float) -> None:
         """The cloud on the lockstep clock: a round's records (as the outbox holds them; maybe
-        none) in one upload tagged with the round, at once and from the flight
-        loop, as the world waits for the round. They pass the outbox: a round closes without
-        an upload that does not arrive in time, so one is never sent again."""
+        none) in one upload tagged with the round, at once. They pass the outbox: a round
+        closes without an upload that does not arrive in time, so one is never sent again."""
         upload = encode_upload(self.uav, [_measurement_row(record) for record in records],
                                round_number)
+        self._round_senders.submit(self._send_round, upload, len(records), round_number,
+                                   timeout)
+
+    def _send_round(self, upload: bytes, taken: int, round_number: int, timeout: float) -> None:
         try:
             receipt = bus.query(self.session, self.key, UploadReceipt, upload, timeout=timeout)
         except bus.BusError as exc:
-            self.failures += 1
             self.log.warning("round %d: upload of %d measurements lost: %s", round_number,
-                             len(records), exc)
+                             taken, exc)
             receipt = None
-        else:
-            self.uploads += 1
-            self.stored += receipt.stored
-        self.outbox.passed(len(records), receipt)
+        with self._counts:
+            if receipt is None:
+                self.failures += 1
+            else:
+                self.uploads += 1
+                self.stored += receipt.stored
+        self.outbox.passed(taken, receipt)
 
     def counts(self) -> dict[str, int]:
         ledger = self.outbox.ledger
