@@ -148,7 +148,7 @@ cdef class Kernel:
     cdef bint safe_cells, memory, route
     cdef double dt, gamma, tolerance, top_speed, discomfort, collision, arrival, step_reward
     cdef double lost_reward, margin_m, closing_tolerance, gap_slack, clearance, horizon
-    cdef double absent_distance
+    cdef double absent_distance, absent_azimuth
     cdef int64_t lost_after, check_every, weak
     cdef float value_scale
     cdef const double[::1] speeds
@@ -201,6 +201,7 @@ cdef class Kernel:
         self.clearance = settings["cell_clearance"]
         self.horizon = settings["orca_time_horizon"]
         self.absent_distance = settings["absent_distance"]
+        self.absent_azimuth = atan2(0.0, -self.absent_distance)
         self.lost_after = settings["disconnection_limit"]
         self.check_every = settings["check_every"]
         self.weak = settings["weak_levels"]
@@ -495,17 +496,20 @@ cdef void write_features(Kernel k, const Scene *s, Step *st, int a, MapView *m) 
     cdef double rx, ry, px, py
     for j in range(k.watched):
         column = 9 + 6 * j
-        if j < s.count:
-            rx, ry = st.ox[j] - x, st.oy[j] - y
-            px, py = rx * c + ry * sn, ry * c - rx * sn
-            f[(column + 2) * stride] = st.ovx[j] * c + st.ovy[j] * sn
-            f[(column + 3) * stride] = st.ovy[j] * c - st.ovx[j] * sn
-        else:
-            px, py = -k.absent_distance, 0.0
+        if j >= s.count:  # an absent other: a still UAV far behind, the same for every move
+            f[column * stride] = -k.absent_distance
+            f[(column + 1) * stride] = 0.0
             f[(column + 2) * stride] = 0.0
             f[(column + 3) * stride] = 0.0
+            f[(column + 4) * stride] = k.absent_distance
+            f[(column + 5) * stride] = k.absent_azimuth
+            continue
+        rx, ry = st.ox[j] - x, st.oy[j] - y
+        px, py = rx * c + ry * sn, ry * c - rx * sn
         f[column * stride] = px
         f[(column + 1) * stride] = py
+        f[(column + 2) * stride] = st.ovx[j] * c + st.ovy[j] * sn
+        f[(column + 3) * stride] = st.ovy[j] * c - st.ovx[j] * sn
         f[(column + 4) * stride] = sqrt(px * px + py * py)
         f[(column + 5) * stride] = atan2(py, px)
     column = 9 + 6 * k.watched
