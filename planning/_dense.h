@@ -29,9 +29,9 @@ static void dense_standardize(const float *restrict states, long stride, int fea
                               const float *restrict mean, const float *restrict std,
                               float *restrict out)
 {
+    dense_lanes *y = (dense_lanes *)out;
     for (int i = 0; i < features; i++)
-        for (int s = 0; s < DENSE_BLOCK; s++)
-            out[i * DENSE_BLOCK + s] = (states[i * stride + s] - mean[i]) / std[i];
+        y[i] = (*(const dense_lanes *)(states + i * stride) - mean[i]) / std[i];
 }
 
 DENSE_CLONES
