@@ -14,8 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from cloud_service.rollout import LookaheadController, fleet_observation, perfect_maps
+from cloud_service.torch_networks import TorchValueNetwork
 from planning import PLANNER_VARIABLE, PlannerError, lookahead_policy
 from planning.lookahead import CompiledLookahead
 from shared.features import (
@@ -249,6 +251,26 @@ def test_exploration_draws_as_the_reference_does(scenario):
     np.testing.assert_array_equal(decisions[1].action[explored], decisions[0].action[explored])
     np.testing.assert_array_equal(decisions[1].heading[explored],
                                   decisions[0].heading[explored])
+
+
+def test_training_updates_reach_the_compiled_planner(scenario):
+    """Training flies a network over its torch module's memory: a step of the optimizer,
+    in place, reaches a compiled planner built before it."""
+    torch.manual_seed(1)
+    module = TorchValueNetwork(joint_state_size(scenario, EXTENDED_METHOD), 2.0,
+                               EXTENDED_METHOD._asdict())
+    network = module.inference()
+    compiled = CompiledLookahead(scenario, network)
+    rng = np.random.default_rng(8)
+    fleet, radio_map = random_fleet(scenario, rng, 50, 4), jammed_map(scenario, rng, 50)
+    before = compiled.decide(fleet, radio_map).value
+    with torch.no_grad():
+        for parameter in module.body.parameters():
+            parameter.mul_(1.5)
+    after = compiled.decide(fleet, radio_map).value
+    assert not np.array_equal(after, before)
+    built_after = CompiledLookahead(scenario, network).decide(fleet, radio_map).value
+    np.testing.assert_array_equal(after, built_after)
 
 
 def test_the_environment_chooses_the_planner(scenario, monkeypatch):
