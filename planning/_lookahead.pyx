@@ -93,8 +93,10 @@ cdef struct MapView:
 
 cdef inline double wrap_angle(double angle) nogil:
     # numpy's remainder: the sign of the divisor, as shared.kinematics.wrap_angle computes.
+    # Within one period of zero fmod returns its argument exactly: skip its cost there.
     cdef double period = 2.0 * M_PI
-    cdef double mod = fmod(angle + M_PI, period)
+    cdef double shifted = angle + M_PI
+    cdef double mod = shifted if -period < shifted < period else fmod(shifted, period)
     if mod != 0.0:
         if (mod < 0.0) != (period < 0.0):
             mod += period
