@@ -40,6 +40,7 @@ cdef enum:
     MAX_WATCHED = 16  # shared.scenario bounds observed_uavs so
     MAX_LAYERS = 8
     MAX_DEPTH = 3  # shared.scenario bounds lookahead_depth so
+    MAX_TURNS = 64  # distinct heading changes: shared.scenario's 63 heading choices and hovering
 
 # How the others' next velocity is predicted (shared.policy.LookaheadPolicy.others_velocity).
 cdef enum OthersModel:
@@ -174,6 +175,8 @@ cdef class Kernel:
         self.speeds = settings["speeds"]
         self.turns = settings["distinct_turns"]
         self.distinct_turns = len(settings["distinct_turns"])
+        if self.distinct_turns > MAX_TURNS:
+            raise ValueError(f"at most {MAX_TURNS} distinct heading changes")
         self.turn_of_action = settings["turn_of_action"]
         self.by_level = settings["connectivity_by_level"]
         self.watched = settings["observed_uavs"]
@@ -527,9 +530,9 @@ cdef void expand(Kernel k, const Scene *s, MapView *m, Step *st) noexcept nogil:
     # shared.policy.LookaheadPolicy.expand (with _margins and _gaps) for one scene.
     cdef double margin[MAX_WATCHED]
     cdef uint8_t near[MAX_WATCHED]
-    cdef double heading[64]
-    cdef double cosine[64]
-    cdef double sine[64]
+    cdef double heading[MAX_TURNS]
+    cdef double cosine[MAX_TURNS]
+    cdef double sine[MAX_TURNS]
     cdef bint any_near = False, arrived, lost
     cdef int o, a, t
     cdef double rx, ry, reach, vx, vy, gap, reward
@@ -647,9 +650,9 @@ cdef bint escapes(Kernel k, Step *st, int a, MapView *m) noexcept nogil:
     if st.terminal[a] or st.level[a] >= k.weak:
         return True
     cdef int t, b
-    cdef double heading[64]
-    cdef double cosine[64]
-    cdef double sine[64]
+    cdef double heading[MAX_TURNS]
+    cdef double cosine[MAX_TURNS]
+    cdef double sine[MAX_TURNS]
     for t in range(k.distinct_turns):
         heading[t] = wrap_angle(st.heading[a] + k.turns[t])
         cosine[t], sine[t] = cos(heading[t]), sin(heading[t])

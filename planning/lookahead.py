@@ -16,6 +16,7 @@ import numpy as np
 from planning import PlannerError
 from planning.source_digest import source_digest
 from shared.features import ABSENT_DISTANCE, CELL_CLEARANCE_M, Observation, joint_state_size
+from shared.kinematics import wrap_angle
 from shared.networks import ValueNetwork
 from shared.policy import (
     CLOSING_TOLERANCE_M,
@@ -37,8 +38,9 @@ except ImportError as exc:
                        "or set JAMNAV_PLANNER=reference for the numpy planner") from None
 
 if source_digest(Path(__file__).parent) not in (None, _lookahead.SOURCE_DIGEST):
-    raise PlannerError("the planner's compiled core is older than its source: run "
-                       "`make install`, or set JAMNAV_PLANNER=reference for the numpy planner")
+    raise PlannerError("the planner's compiled core was built from other source than is beside "
+                       "it: run `make install`, or set JAMNAV_PLANNER=reference for the numpy "
+                       "planner")
 
 NO_ROUTES = RouteFields([], np.zeros(0, dtype=np.int64), np.zeros(0), 0.0, 0.0, 1.0)
 
@@ -94,9 +96,9 @@ class CompiledLookahead(LookaheadPolicy):
             return self.decide_scored(observation, radio_map).decision
         decision, _, allowed = self.decide_scored(observation, radio_map)
         action, value = explored(decision.action, decision.value, allowed, epsilon, rng)
-        heading = observation.heading + self.actions.turns[action]
         return Decision(self.actions.speeds[action],
-                        (heading + np.pi) % (2.0 * np.pi) - np.pi, action, value)
+                        wrap_angle(observation.heading + self.actions.turns[action]), action,
+                        value)
 
     def decide_scored(self, observation: Observation, radio_map: RasterMap) -> ScoredDecision:
         """The decision, with every action's score and which the safe cells allow."""
@@ -141,9 +143,10 @@ class CompiledLookahead(LookaheadPolicy):
     def _run(self, state: tuple, radio_map: RasterMap, fields: RouteFields,
              out: tuple) -> None:
         first = radio_map.first
-        self.kernel.decide(*state, radio_map.stack, radio_map.which, first.x0, first.y0,
-                           first.spacing, fields.stores, fields.slots, fields.offset,
-                           fields.x0, fields.y0, fields.cell, *out)
+        which = np.ascontiguousarray(radio_map.which, dtype=np.int64)
+        self.kernel.decide(*state, radio_map.stack, which, first.x0, first.y0, first.spacing,
+                           fields.stores, fields.slots, fields.offset, fields.x0, fields.y0,
+                           fields.cell, *out)
 
 
 def _float32(array: np.ndarray) -> np.ndarray:
