@@ -16,6 +16,10 @@ from libc.stdint cimport int8_t, int64_t, uint8_t
 from libc.stdlib cimport calloc, free
 
 
+cdef extern from "_angles.h" nogil:
+    void atan2_many(const double *y, const double *x, double *out, int n)
+
+
 cdef extern from "_dense.h" nogil:
     enum: DENSE_BLOCK
     void dense_standardize(const float *states, long stride, int features, const float *mean,
@@ -74,6 +78,11 @@ cdef struct Step:
     uint8_t *terminal
     float *states  # feature-major: feature i of action a at states[i * stride + a]
     Py_ssize_t stride  # the actions rounded up to whole blocks of the forward
+    # The features' angles, taken together once every action's are known: for action a, the
+    # direction to the goal, then to each other, at a * (others + 1) + ...
+    double *angle_y
+    double *angle_x
+    double *angle
     # The others after the step, and the velocity that took them there.
     double ox[MAX_WATCHED]
     double oy[MAX_WATCHED]
@@ -314,8 +323,9 @@ cdef class Workspace:
     def __cinit__(self, Kernel kernel):
         cdef Py_ssize_t a = kernel.actions
         cdef Py_ssize_t padded = (a + DENSE_BLOCK - 1) // DENSE_BLOCK * DENSE_BLOCK
+        cdef Py_ssize_t angles = a * (kernel.watched + 1)
         cdef Py_ssize_t per_step = (7 * sizeof(double) + 2 * sizeof(int64_t) + 1) * a \
-            + sizeof(float) * padded * kernel.features
+            + sizeof(float) * padded * kernel.features + 3 * sizeof(double) * angles
         cdef Py_ssize_t total = (kernel.depth * per_step + 2 * sizeof(double) * padded + 2 * a
                                  + 2 * sizeof(float) * DENSE_BLOCK * kernel.widest + 64 * 16)
         self.memory = calloc(1, total)
@@ -329,6 +339,9 @@ cdef class Workspace:
             self.steps[d].states = <float *>cursor
             self.steps[d].stride = padded
             cursor += sizeof(float) * padded * kernel.features + 8
+            self.steps[d].angle_y = <double *>cursor; cursor += sizeof(double) * angles
+            self.steps[d].angle_x = <double *>cursor; cursor += sizeof(double) * angles
+            self.steps[d].angle = <double *>cursor; cursor += sizeof(double) * angles
             self.steps[d].heading = <double *>cursor; cursor += sizeof(double) * a
             self.steps[d].vx = <double *>cursor; cursor += sizeof(double) * a
             self.steps[d].vy = <double *>cursor; cursor += sizeof(double) * a
@@ -496,7 +509,9 @@ cdef void write_features(Kernel k, const Scene *s, Step *st, int a, MapView *m) 
     f[5 * stride] = 0.0
     f[6 * stride] = s.radius
     f[7 * stride] = s.max_speed
-    f[8 * stride] = wrap_angle(st.heading[a] - atan2(sn, c))
+    cdef double *toward_y = st.angle_y + a * (s.count + 1)
+    cdef double *toward_x = st.angle_x + a * (s.count + 1)
+    toward_y[0], toward_x[0] = sn, c  # the heading feature: see write_angles
     cdef int j, column
     cdef double rx, ry, px, py
     for j in range(k.watched):
@@ -516,7 +531,7 @@ cdef void write_features(Kernel k, const Scene *s, Step *st, int a, MapView *m) 
         f[(column + 2) * stride] = st.ovx[j] * c + st.ovy[j] * sn
         f[(column + 3) * stride] = st.ovy[j] * c - st.ovx[j] * sn
         f[(column + 4) * stride] = sqrt(px * px + py * py)
-        f[(column + 5) * stride] = atan2(py, px)
+        toward_y[j + 1], toward_x[j + 1] = py, px
     column = 9 + 6 * k.watched
     f[column * stride] = st.level[a]
     if k.memory:
@@ -524,6 +539,17 @@ cdef void write_features(Kernel k, const Scene *s, Step *st, int a, MapView *m) 
         f[column * stride] = st.below[a]
     if k.route:
         f[(column + 1) * stride] = route_distance(m, x, y)
+
+
+cdef void write_angles(Kernel k, const Scene *s, Step *st) noexcept nogil:
+    # The features write_features left for here, taken together (planning/_angles.h): the
+    # heading against the direction to the goal, and each present other's azimuth.
+    cdef int per_action = s.count + 1, a, j
+    atan2_many(st.angle_y, st.angle_x, st.angle, k.actions * per_action)
+    for a in range(k.actions):
+        st.states[8 * st.stride + a] = wrap_angle(st.heading[a] - st.angle[a * per_action])
+        for j in range(s.count):
+            st.states[(9 + 6 * j + 5) * st.stride + a] = st.angle[a * per_action + j + 1]
 
 
 cdef void expand(Kernel k, const Scene *s, MapView *m, Step *st) noexcept nogil:
@@ -580,6 +606,7 @@ cdef void expand(Kernel k, const Scene *s, MapView *m, Step *st) noexcept nogil:
                 reward = reward + k.lost_reward
         st.reward[a] = reward
         write_features(k, s, st, a, m)
+    write_angles(k, s, st)
 
 
 cdef void forward(Kernel k, Workspace w, const Step *st, Py_ssize_t n,
