@@ -10,7 +10,7 @@ A row's decision reads no Python object: the maps come as plain arrays (a level 
 row, a route field per row), the network as its float32 tensors.
 """
 
-from libc.math cimport INFINITY, M_PI, atan2, copysign, cos, floor, fmod, hypot, isfinite
+from libc.math cimport INFINITY, M_PI, atan2, copysign, cos, fmod, hypot, isfinite
 from libc.math cimport rint, sin, sqrt, tanhf
 from libc.stdint cimport int8_t, int64_t, uint8_t
 from libc.stdlib cimport calloc, free
@@ -140,8 +140,9 @@ cdef inline double route_distance(MapView *m, double x, double y) nogil:
     # shared.routes.RouteGrid._read, then the offset RouteGrid.distance adds.
     cdef double fx = clamp((x - m.field_x0) / m.cell, 0, m.field_cols - 1)
     cdef double fy = clamp((y - m.field_y0) / m.cell, 0, m.field_rows - 1)
-    cdef Py_ssize_t c0 = min(<Py_ssize_t>floor(fx), m.field_cols - 2)
-    cdef Py_ssize_t r0 = min(<Py_ssize_t>floor(fy), m.field_rows - 2)
+    # fx and fy are clamped to 0 or more: truncation is their floor, without a call to libm.
+    cdef Py_ssize_t c0 = min(<Py_ssize_t>fx, m.field_cols - 2)
+    cdef Py_ssize_t r0 = min(<Py_ssize_t>fy, m.field_rows - 2)
     cdef double tx = fx - c0, ty = fy - r0
     cdef double sx = 1 - tx, sy = 1 - ty
     cdef const float *corner = m.field + r0 * m.field_cols + c0

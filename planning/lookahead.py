@@ -167,7 +167,7 @@ def _plain(observation: Observation) -> tuple:
             floats(observation.heading), floats(observation.destination),
             floats(observation.radius), floats(observation.max_speed),
             integers(observation.level), integers(observation.below_steps),
-            integers(np.broadcast_to(observation.step, observation.heading.shape)),
+            integers(observation.step),
             floats(observation.others_position), floats(observation.others_velocity),
             floats(observation.others_radius),
             np.ascontiguousarray(observation.others_present, dtype=bool).view(np.uint8))
