@@ -18,7 +18,7 @@ core = Extension(
     "planning._lookahead",
     ["planning/_lookahead.pyx"],
     include_dirs=["planning"],
-    libraries=["mvec"],  # glibc's vector math (planning/_angles.h)
+    libraries=["mvec"],  # glibc's vector math (planning/_vector_math.h)
     define_macros=[("PLANNING_SOURCE_DIGEST",
                     f'"{_digest.source_digest(HERE / "planning")}"')],
     extra_compile_args=["-O3"],

@@ -16,8 +16,9 @@ from libc.stdint cimport int8_t, int64_t, uint8_t
 from libc.stdlib cimport calloc, free
 
 
-cdef extern from "_angles.h" nogil:
+cdef extern from "_vector_math.h" nogil:
     void atan2_many(const double *y, const double *x, double *out, int n)
+    void hypot_many(const double *x, const double *y, double *out, int n)
 
 
 cdef extern from "_dense.h" nogil:
@@ -83,6 +84,10 @@ cdef struct Step:
     double *angle_y
     double *angle_x
     double *angle
+    # Each action's closest approach to the destination, its offset and length.
+    double *arrival_x
+    double *arrival_y
+    double *arrival
     # The others after the step, and the velocity that took them there.
     double ox[MAX_WATCHED]
     double oy[MAX_WATCHED]
@@ -119,13 +124,21 @@ cdef inline double clamp(double value, double low, double high) nogil:
     return min(max(value, low), high)
 
 
-cdef inline double closest_approach(double px, double py, double vx, double vy,
-                                    double duration) nogil:
+cdef inline void closest_offset(double px, double py, double vx, double vy, double duration,
+                                double *x, double *y) noexcept nogil:
+    # Where the closest approach's offset lies: its length is closest_approach.
     cdef double speed_sq = vx * vx + vy * vy
     cdef double toward = -(px * vx + py * vy)
     cdef double time = toward / speed_sq if speed_sq > 0.0 else 0.0
     time = clamp(time, 0.0, duration)
-    return hypot(px + vx * time, py + vy * time)
+    x[0], y[0] = px + vx * time, py + vy * time
+
+
+cdef inline double closest_approach(double px, double py, double vx, double vy,
+                                    double duration) noexcept nogil:
+    cdef double x, y
+    closest_offset(px, py, vx, vy, duration, &x, &y)
+    return hypot(x, y)
 
 
 cdef inline int64_t level_at(const MapView *m, double x, double y) nogil:
@@ -325,7 +338,7 @@ cdef class Workspace:
         cdef Py_ssize_t a = kernel.actions
         cdef Py_ssize_t padded = (a + DENSE_BLOCK - 1) // DENSE_BLOCK * DENSE_BLOCK
         cdef Py_ssize_t angles = a * (kernel.watched + 1)
-        cdef Py_ssize_t per_step = (7 * sizeof(double) + 2 * sizeof(int64_t) + 1) * a \
+        cdef Py_ssize_t per_step = (10 * sizeof(double) + 2 * sizeof(int64_t) + 1) * a \
             + sizeof(float) * padded * kernel.features + 3 * sizeof(double) * angles
         cdef Py_ssize_t total = (kernel.depth * per_step + 2 * sizeof(double) * padded + 2 * a
                                  + 2 * sizeof(float) * DENSE_BLOCK * kernel.widest + 64 * 16)
@@ -343,6 +356,9 @@ cdef class Workspace:
             self.steps[d].angle_y = <double *>cursor; cursor += sizeof(double) * angles
             self.steps[d].angle_x = <double *>cursor; cursor += sizeof(double) * angles
             self.steps[d].angle = <double *>cursor; cursor += sizeof(double) * angles
+            self.steps[d].arrival_x = <double *>cursor; cursor += sizeof(double) * a
+            self.steps[d].arrival_y = <double *>cursor; cursor += sizeof(double) * a
+            self.steps[d].arrival = <double *>cursor; cursor += sizeof(double) * a
             self.steps[d].heading = <double *>cursor; cursor += sizeof(double) * a
             self.steps[d].vx = <double *>cursor; cursor += sizeof(double) * a
             self.steps[d].vy = <double *>cursor; cursor += sizeof(double) * a
@@ -543,7 +559,7 @@ cdef void write_features(Kernel k, const Scene *s, Step *st, int a, MapView *m) 
 
 
 cdef void write_angles(Kernel k, const Scene *s, Step *st) noexcept nogil:
-    # The features write_features left for here, taken together (planning/_angles.h): the
+    # The features write_features left for here, taken together (planning/_vector_math.h): the
     # heading against the direction to the goal, and each present other's azimuth.
     cdef int per_action = s.count + 1, a, j
     atan2_many(st.angle_y, st.angle_x, st.angle, k.actions * per_action)
@@ -582,8 +598,12 @@ cdef void expand(Kernel k, const Scene *s, MapView *m, Step *st) noexcept nogil:
         t = k.turn_of_action[a]
         vx, vy = k.speeds[a] * cosine[t], k.speeds[a] * sine[t]
         st.heading[a], st.vx[a], st.vy[a] = heading[t], vx, vy
-        arrived = closest_approach(s.x - s.dest_x, s.y - s.dest_y, vx, vy,
-                                   k.dt) <= k.tolerance
+        closest_offset(s.x - s.dest_x, s.y - s.dest_y, vx, vy, k.dt, &st.arrival_x[a],
+                       &st.arrival_y[a])
+    hypot_many(st.arrival_x, st.arrival_y, st.arrival, k.actions)
+    for a in range(k.actions):
+        vx, vy = st.vx[a], st.vy[a]
+        arrived = st.arrival[a] <= k.tolerance
         if arrived:
             st.x[a], st.y[a] = s.dest_x, s.dest_y
         else:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-COMPILED_SOURCES = ("_lookahead.pyx", "_dense.h", "_angles.h")
+COMPILED_SOURCES = ("_lookahead.pyx", "_dense.h", "_vector_math.h")
 
 
 def source_digest(directory: Path) -> str | None:
