@@ -27,7 +27,10 @@ def main() -> int:
 
     import torch
 
+    from benchmarks.common import cpu_name
+
     torch.set_num_threads(1)
+    print(f"CPU: {cpu_name()}")
     rows = []
     for name in args.names or BENCHMARKS:
         print(f"running {name} ...", file=sys.stderr, flush=True)
@@ -43,6 +46,7 @@ def main() -> int:
                 {
                     "when": time.strftime("%Y-%m-%d %H:%M:%S"),
                     "machine": f"{platform.machine()} {os.cpu_count()} cores",
+                    "cpu": cpu_name(),
                     "figures": [vars(figure) for figure in rows],
                 },
                 out,

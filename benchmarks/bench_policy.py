@@ -1,10 +1,12 @@
-"""Lookahead decisions/s: full evaluation of every permissible action for 256 UAVs at once
-(64 environments x 4 UAVs), true map with a jammer, value network on one CPU thread; for the
-paper's method (one step), and for the shipped extended network (route distances, safe cells,
-and the scenario's deeper search for UAVs whose one-step choice is a trap). One UAV's decision
-alone, as an agent makes it: its time, and the Python and numpy calls it makes, whose fixed
-cost sets a floor under it. And what an agent's first decision of an episode adds: the route
-field to its new destination."""
+"""Lookahead decisions/s, the compiled planner beside its numpy reference in the same run
+(their ratio: the speed-up on this CPU, whichever it is): full evaluation of every permissible
+action for 256 UAVs at once (64 environments x 4 UAVs), true map with a jammer, value network
+on one CPU thread; for the paper's method (one step), and for the shipped extended network
+(route distances, safe cells, reciprocal others, and the scenario's deeper search for UAVs
+whose one-step choice is a trap). One UAV's decision alone, as an agent makes it: its time,
+and the Python and numpy calls the reference makes, whose fixed cost sets a floor under it.
+And what an agent's first decision of an episode adds: the route field to its new
+destination."""
 
 from __future__ import annotations
 
@@ -15,10 +17,11 @@ from collections.abc import Callable
 import numpy as np
 
 from benchmarks.common import Figure, best_rate
-from cloud_service.evaluation import load_policy
 from cloud_service.rollout import LookaheadController, RasterMaps, fleet_observation, perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
+from planning.lookahead import CompiledLookahead
 from shared.features import joint_state_size
+from shared.networks import load_network
 from shared.paper import TABLE_I_JAMMERS, jammer_params
 from shared.policy import MAP_SPACING_M, LevelRaster, LookaheadPolicy, TrueMap
 from shared.radio import RadioModel
@@ -26,28 +29,35 @@ from shared.scenario import Scenario, load_scenario
 from shared.shipped import EXTENDED_VALUE_NET
 from world_sim.core import VectorWorld, episode_seed
 
+PLANNERS = {"reference": LookaheadPolicy, "compiled": CompiledLookahead}
+
 
 def run() -> list[Figure]:
     scenario = load_scenario()
     world = VectorWorld(scenario, 64, 4)
     world.reset(np.arange(64), [episode_seed(0, k) for k in range(64)])
-    policies = {
-        "paper's method": LookaheadPolicy(
-            scenario, TorchValueNetwork(joint_state_size(scenario), 2.0).inference()),
-        "extended": load_policy(scenario, EXTENDED_VALUE_NET),
+    networks = {
+        "paper's method": TorchValueNetwork(joint_state_size(scenario), 2.0).inference(),
+        "extended": load_network(EXTENDED_VALUE_NET)[0],
     }
     figures = []
-    for name, policy in policies.items():
-        controller = LookaheadController(policy, perfect_maps(scenario))
+    for name, network in networks.items():
+        rates = {}
+        for planner, kind in PLANNERS.items():
+            controller = LookaheadController(kind(scenario, network), perfect_maps(scenario))
 
-        def decide(controller: LookaheadController = controller) -> int:
-            controller.act(world)
-            return int(world.active.sum())
+            def decide(controller: LookaheadController = controller) -> int:
+                controller.act(world)
+                return int(world.active.sum())
 
-        rate = best_rate(decide, repeats=3, min_seconds=1.0)
-        figures.append(Figure(f"lookahead decisions/s, {name} (256 UAVs x all actions, "
-                              "batched)", rate, "decisions/s", 20_000))
-    figures += single_uav_figures(policies["extended"], world, perfect_maps(scenario))
+            rates[planner] = best_rate(decide, repeats=3, min_seconds=1.0)
+            figures.append(Figure(f"lookahead decisions/s, {name}, {planner} (256 UAVs x all "
+                                  "actions, batched)", rates[planner], "decisions/s", 20_000))
+        figures.append(Figure("  compiled / reference", rates["compiled"] / rates["reference"],
+                              "x", 3))
+    extended = {planner: kind(scenario, networks["extended"])
+                for planner, kind in PLANNERS.items()}
+    figures += single_uav_figures(extended, world, perfect_maps(scenario))
     figures.append(Figure("route field to one new destination, as an agent sweeps it, ms",
                           single_route_field_ms(scenario), "ms", lower_is_better=True))
     return figures
@@ -56,30 +66,41 @@ def run() -> list[Figure]:
 SINGLE_UAV_REPEATS = 20
 
 
-def single_uav_figures(policy: LookaheadPolicy, world: VectorWorld,
+def single_uav_figures(policies: dict[str, LookaheadPolicy], world: VectorWorld,
                        maps: RasterMaps) -> list[Figure]:
-    """Each of the world's UAVs decided alone, as its agent would: the median and 99th
-    percentile of the time of one decision (the mean of SINGLE_UAV_REPEATS in a warm loop),
-    and the fewest and most function calls (Python's and numpy's) a decision makes, counted
-    by the interpreter's profiling hook."""
+    """Each of the world's UAVs decided alone, as its agent would, by each planner in turn:
+    the median and 99th percentile of the time of one decision (the mean of
+    SINGLE_UAV_REPEATS in a warm loop), their ratios, and the fewest and most function calls
+    (Python's and numpy's) a reference decision makes, counted by the interpreter's profiling
+    hook."""
     observation = fleet_observation(world)
     radio_map = maps(world, np.arange(len(observation)))
     alone = [(observation.select(row), radio_map.for_rows(row))
              for row in np.arange(len(observation))[:, None]]
-    times = []
-    for case in alone:
-        policy.decide(*case)
-        start = time.perf_counter()
-        for _ in range(SINGLE_UAV_REPEATS):
+    figures, percentiles = [], {}
+    for planner, policy in policies.items():
+        times = []
+        for case in alone:
             policy.decide(*case)
-        times.append(1e6 * (time.perf_counter() - start) / SINGLE_UAV_REPEATS)
-    calls = [_calls(lambda case=case: policy.decide(*case)) for case in alone]
-    return [
-        Figure("one UAV's decision alone (each of the 256 above), median, us",
-               float(np.median(times)), "us", 500, lower_is_better=True),
-        Figure("  99th percentile, us", float(np.percentile(times, 99)), "us", 500,
-               lower_is_better=True),
-        Figure("  function calls of a decision, fewest (one step)", min(calls), "calls"),
+            start = time.perf_counter()
+            for _ in range(SINGLE_UAV_REPEATS):
+                policy.decide(*case)
+            times.append(1e6 * (time.perf_counter() - start) / SINGLE_UAV_REPEATS)
+        percentiles[planner] = np.percentile(times, [50, 99])
+        figures += [
+            Figure(f"one UAV's decision alone, {planner} (each of the 256 above), median, us",
+                   float(percentiles[planner][0]), "us", 500, lower_is_better=True),
+            Figure("  99th percentile, us", float(percentiles[planner][1]), "us", 500,
+                   lower_is_better=True),
+        ]
+    speedup = percentiles["reference"] / percentiles["compiled"]
+    reference = policies["reference"]
+    calls = [_calls(lambda case=case: reference.decide(*case)) for case in alone]
+    return figures + [
+        Figure("  reference / compiled, median", float(speedup[0]), "x", 10),
+        Figure("  reference / compiled, 99th percentile", float(speedup[1]), "x", 10),
+        Figure("  function calls of a reference decision, fewest (one step)", min(calls),
+               "calls"),
         Figure("  most (the deeper search)", max(calls), "calls"),
     ]
 

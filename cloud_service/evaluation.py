@@ -33,6 +33,7 @@ from cloud_service.rollout import (
 )
 from cloud_service.sinr_mapping import OnlineSinrMapper, RetrainConfig
 from cloud_service.sinr_memory import SinrMemory
+from planning import lookahead_policy
 from shared.measurements import (
     MeasurementBatch,
     MeasurementSpec,
@@ -63,7 +64,7 @@ def load_policy(scenario: Scenario, path: Path) -> LookaheadPolicy:
     except WeightsError as exc:
         raise EvaluationError(str(exc)) from None
     try:
-        return LookaheadPolicy(scenario, network)
+        return lookahead_policy(scenario, network)
     except WeightsError as exc:
         raise EvaluationError(f"{path}: {exc}") from None
 

@@ -52,6 +52,7 @@ from cloud_service.rollout import (
     run_episodes,
 )
 from cloud_service.torch_networks import TorchValueNetwork
+from planning import lookahead_policy
 from shared.features import METHODS, MethodOptions, joint_state_size, observation_state
 from shared.networks import (
     ValueNetwork,
@@ -64,7 +65,7 @@ from shared.networks import (
 )
 from shared.outcomes import Outcome
 from shared.paper import TABLE_I_JAMMERS
-from shared.policy import PUBLISHED_LOOKAHEAD, LookaheadPolicy
+from shared.policy import PUBLISHED_LOOKAHEAD
 from shared.radio import JammerParams
 from shared.resources import resident_mib
 from shared.scenario import Scenario
@@ -341,7 +342,7 @@ def validate(scenario: Scenario, net: ValueNetwork, episodes: int, uavs: int) ->
     jammer setting: the share of UAV-episodes ending in each outcome."""
     # The lookahead the network is trained with: selecting checkpoints by the deployed
     # planner would score the planner as much as the network.
-    policy = LookaheadPolicy(scenario, net, **PUBLISHED_LOOKAHEAD)
+    policy = lookahead_policy(scenario, net, **PUBLISHED_LOOKAHEAD)
     outcomes = [
         run_episodes(scenario, LookaheadController(policy, perfect_maps(scenario)), episodes,
                      VALIDATION_SEED, setting, uavs).outcomes
@@ -690,7 +691,7 @@ def train(
 
     # The lookahead the shipped networks were trained with (the TD targets are one-step, and
     # a deeper search would cost training 5-10x).
-    policy = LookaheadPolicy(scenario, net.inference(), shield=False, **PUBLISHED_LOOKAHEAD)
+    policy = lookahead_policy(scenario, net.inference(), shield=False, **PUBLISHED_LOOKAHEAD)
     controller = LookaheadController(policy, maps, rng=rng)
     world = VectorWorld(scenario, config.envs, uavs)
     gamma = scenario.policy.gamma

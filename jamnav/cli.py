@@ -29,6 +29,7 @@ from jamnav.arguments import (
 )
 from jamnav.cli_runtime import _guarded
 from jamnav.cli_runtime import register as register_runtime
+from planning import PlannerError
 from shared.radio import RadioModel
 from shared.scenario import (
     MAX_UAVS,
@@ -825,7 +826,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.handler(args)
-    except (UsageError, ScenarioError) as exc:
+    except (UsageError, ScenarioError, PlannerError) as exc:
         print(f"jamnav: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -34,7 +34,7 @@ OWN_FEATURES = ("v_x", "v_y", "dest_x", "dest_y", "dest_distance", "dest_azimuth
 OTHER_FEATURES = ("p_x", "p_y", "v_x", "v_y", "distance", "azimuth")
 # A missing neighbour (fewer than J_n in the air) is shown as a still UAV this far behind,
 # where it cannot matter, so the network needs no special input for absence.
-_ABSENT_DISTANCE = 1000.0
+ABSENT_DISTANCE = 1000.0
 
 
 class MethodOptions(NamedTuple):
@@ -234,9 +234,9 @@ def joint_state(
         column = len(OWN_FEATURES) + k * width
         block = planes[column : column + width]
         if k >= count:
-            block[0] = -_ABSENT_DISTANCE
+            block[0] = -ABSENT_DISTANCE
             block[1:4] = 0.0
-            block[4] = _ABSENT_DISTANCE
+            block[4] = ABSENT_DISTANCE
             block[5] = np.pi
             continue
         rx = others_position[..., k, 0] - position[..., 0]
@@ -249,7 +249,7 @@ def joint_state(
         block[3] = ovy * cos - ovx * sin
         absent = ~others_present[..., k]
         if absent.any():
-            np.copyto(px, -_ABSENT_DISTANCE, where=absent)
+            np.copyto(px, -ABSENT_DISTANCE, where=absent)
             np.copyto(block[1:4], 0.0, where=absent)
         np.hypot(px, py, out=block[4])
         np.arctan2(py, px, out=block[5])

@@ -122,6 +122,11 @@ class Network:
         self._layers = [(_flushed(weight_t), _flushed(bias)) for weight_t, bias in self._layers]
         return self
 
+    def layers(self) -> tuple[np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+        """What the forward reads, for a forward in compiled code: the standardization's mean
+        and std, and each layer's weight (outputs, inputs) and bias, float32."""
+        return self._mean, self._std, [(weight_t.T, bias) for weight_t, bias in self._layers]
+
     def outputs(self, inputs: np.ndarray) -> np.ndarray:
         """The last layer's outputs (..., units) for inputs (..., input_size)."""
         inputs = np.asarray(inputs)

@@ -145,6 +145,19 @@ def sinr_network_raster(
     return LevelRaster.sample(scenario, levels, spacing)
 
 
+class RouteFields(NamedTuple):
+    """Route fields as plain arrays: row n reads field ``slots[n]`` of ``stores[which[n]]``
+    (fields (S, rows, cols) float32 on a grid from (x0, y0) at ``cell`` metres), interpolated
+    bilinearly, plus ``offset[n]`` (``shared.routes.RouteGrid.distance``)."""
+
+    stores: list[np.ndarray]
+    slots: np.ndarray
+    offset: np.ndarray
+    x0: float
+    y0: float
+    cell: float
+
+
 class RasterMap:
     """Several rasters of one shape, each UAV row reading its own (per-environment jammers)."""
 
@@ -170,6 +183,24 @@ class RasterMap:
         """The route field to ``destination`` (2,) on the first raster (an agent's only one),
         swept into its cache a line at a time (``RouteGrid.sweep_ahead``)."""
         return self.first.routes(self.scenario).sweep_ahead(destination)
+
+    def route_fields(self, destination: np.ndarray, reach_m: np.ndarray,
+                     whole: np.ndarray | None = None) -> RouteFields:
+        """The route fields to each row's ``destination`` (N, 2) as plain arrays, computed as
+        far as each row's ``reach_m`` (N,) at least, everywhere for the rows ``whole`` marks
+        (N,): what ``route_distance`` interpolates, for a reader in compiled code."""
+        slots = np.empty(len(self.which), dtype=np.int64)
+        offset = np.empty(len(self.which))
+        grids = [raster.routes(self.scenario) for raster in self.rasters]
+        for index, grid in enumerate(grids):
+            rows = np.flatnonzero(self.which == index)
+            if rows.size:
+                slots[rows], offset[rows] = grid.fields(
+                    destination[rows], reach_m[rows],
+                    whole is not None and bool(whole[rows].any()))
+        first = grids[0]  # the rasters share one shape, so their routing grids one geometry
+        return RouteFields([grid.store for grid in grids], slots, offset, first.x0, first.y0,
+                           first.cell)
 
     def route_distance(self, xy: np.ndarray, destination: np.ndarray) -> np.ndarray:
         """Route distance (N, ...) from ``xy`` (N, ..., 2) to each row's destination."""
@@ -519,19 +550,15 @@ class LookaheadPolicy:
             score[rows] = np.where(searched, deep, -np.inf)
         return score
 
-    def decide(
-        self,
-        observation: Observation,
-        radio_map: RadioMap,
-        epsilon: float = 0.0,
-        rng: np.random.Generator | None = None,
-    ) -> Decision:
-        n = len(observation)
+    def scored(self, observation: Observation,
+               radio_map: RadioMap) -> tuple[Expansion, np.ndarray, np.ndarray]:
+        """Every action of every UAV one step ahead, its score (N, A) (R + gamma V, searched
+        deeper for the UAVs at risk, -inf outside the safe cell), and which actions the safe
+        cells allow (N, A)."""
         seen = observation
         observation = observation.nearest_neighbours(self.observed_uavs)
         expansion = self.expand(observation, radio_map)
         score = self.leaf_scores(expansion)
-        rows = np.arange(n)
         allowed = np.ones_like(score, dtype=bool)
         if self.safe_cells:
             # The whole step's path counts, arrival included: the world checks it so. Every
@@ -542,15 +569,33 @@ class LookaheadPolicy:
             score = np.where(allowed, score, -np.inf)
         if self.depth > 1:
             score = self.deepened(observation, expansion, radio_map, score, allowed)
+        return expansion, score, allowed
+
+    def decide(
+        self,
+        observation: Observation,
+        radio_map: RadioMap,
+        epsilon: float = 0.0,
+        rng: np.random.Generator | None = None,
+    ) -> Decision:
+        expansion, score, allowed = self.scored(observation, radio_map)
+        rows = np.arange(len(observation))
         chosen = score.argmax(axis=1)
-        value = score[rows, chosen]
-        if epsilon > 0:
-            rng = rng or np.random.default_rng()
-            explore = rng.random(n) < epsilon
-            tried = rng.integers(0, len(self.actions), n)
-            # A random move that would leave the safe cell hovers instead.
-            tried = np.where(allowed[rows, tried], tried, 0)
-            chosen = np.where(explore, tried, chosen)
-            value = np.where(explore, np.nan, value)
+        chosen, value = explored(chosen, score[rows, chosen], allowed, epsilon, rng)
         return Decision(expansion.speed[rows, chosen], expansion.heading[rows, chosen], chosen,
                         value)
+
+
+def explored(chosen: np.ndarray, value: np.ndarray, allowed: np.ndarray, epsilon: float,
+             rng: np.random.Generator | None) -> tuple[np.ndarray, np.ndarray]:
+    """The ``chosen`` actions (N,) and their ``value`` with, at probability ``epsilon`` each,
+    a random action the safe cells ``allowed`` (N, A) instead, valued NaN."""
+    if epsilon <= 0:
+        return chosen, value
+    n, actions = allowed.shape
+    rng = rng or np.random.default_rng()
+    explore = rng.random(n) < epsilon
+    tried = rng.integers(0, actions, n)
+    # A random move that would leave the safe cell hovers instead.
+    tried = np.where(allowed[np.arange(n), tried], tried, 0)
+    return np.where(explore, tried, chosen), np.where(explore, np.nan, value)

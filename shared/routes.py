@@ -105,6 +105,9 @@ class RouteGrid:
         self.cache_size = cache_size
         self.store = np.empty((0, self.rows, self.cols), dtype=np.float32)
         self._partial: set[int] = set()  # destination nodes whose field stops at a reach
+        # Fields evicted so far: a reader that kept a field's slot in ``store`` may read it
+        # there for as long as this count and ``store`` stay.
+        self.changes = 0
 
     def node_of(self, xy: np.ndarray) -> np.ndarray:
         col = clamp(np.rint((xy[..., 0] - self.x0) / self.cell), 0, self.cols - 1)
@@ -223,6 +226,7 @@ class RouteGrid:
         if len(self.cache) >= self.cache_size:
             node, slot = self.cache.popitem(last=False)
             self._partial.discard(node)
+            self.changes += 1
         else:
             slot = len(self.cache)
             if slot == len(self.store):
@@ -249,9 +253,24 @@ class RouteGrid:
                 beyond = list(dict.fromkeys(nodes[short].tolist()))
                 self._compute(beyond, [np.inf] * len(beyond))
                 value[short] = self._read(self.slots(nodes[short]), xy[short])
-        offset = np.hypot(destination[:, 0] - (self.x0 + (nodes % self.cols) * self.cell),
-                          destination[:, 1] - (self.y0 + (nodes // self.cols) * self.cell))
-        return value + offset.reshape((-1,) + (1,) * (xy.ndim - 2))
+        return value + self._offset(destination, nodes).reshape((-1,) + (1,) * (xy.ndim - 2))
+
+    def _offset(self, destination: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+        """The last stretch (N,) from each destination's grid node to the exact point."""
+        return np.hypot(destination[:, 0] - (self.x0 + (nodes % self.cols) * self.cell),
+                        destination[:, 1] - (self.y0 + (nodes // self.cols) * self.cell))
+
+    def fields(self, destination: np.ndarray, reach_m: np.ndarray,
+               whole: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """For a reader of ``store`` that interpolates as ``distance`` does: the slots (N,) of
+        the fields to each ``destination`` (N, 2), computed as far as each row's ``reach_m``
+        (N,) at least (see REACH_FACTOR; ``whole``: everywhere), and each destination's offset
+        from its node (N,), which ``distance`` adds to the field's value."""
+        nodes = self.node_of(destination)
+        if whole:
+            partial = [node for node in dict.fromkeys(nodes.tolist()) if node in self._partial]
+            self._compute(partial, [np.inf] * len(partial))
+        return self.slots(nodes, lambda: reach_m), self._offset(destination, nodes)
 
     def _read(self, slot: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """The fields in ``slot`` (N,) interpolated at ``xy`` (N, ..., 2)."""

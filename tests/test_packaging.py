@@ -19,13 +19,13 @@ from tests.support import free_endpoint
 
 ROOT = Path(__file__).resolve().parent.parent
 PIP = [sys.executable, "-m", "pip", "--disable-pip-version-check", "-q"]
-TOP_LEVEL = ("shared", "world_sim", "uav_agent", "cloud_service", "jamnav")
+TOP_LEVEL = ("shared", "planning", "world_sim", "uav_agent", "cloud_service", "jamnav")
 
 # Run by the installed copy with the top-level packages as arguments: where each project module
 # it loads lives, the data files it finds, and its error for an unknown scenario.
 PROBE = """
 import json, sys
-import cloud_service.process, jamnav.cli, uav_agent.process, world_sim.process
+import cloud_service.process, jamnav.cli, planning.lookahead, uav_agent.process, world_sim.process
 from shared.scenario import SCENARIO_DIR, ScenarioError, resolve_scenario_path
 from shared.shipped import MODELS_DIR
 try:
@@ -49,14 +49,16 @@ def checked(argv: list[str], **kwargs) -> subprocess.CompletedProcess:
 
 
 def copy_sources(dest: Path) -> Path:
-    """What the build reads: pyproject.toml, the readme and the directory of every package it
-    names (a build in the checkout would leave build/ there, stale files included)."""
+    """What the build reads: pyproject.toml, setup.py (the compiled planner), the readme and
+    the directory of every package it names, without the checkout's own build of the planner's
+    core (a build in the checkout would leave build/ there, stale files included)."""
     config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
     setuptools = config["tool"]["setuptools"]
     mapped = setuptools.get("package-dir", {})
     for top in {mapped.get(p, p.replace(".", "/")).split("/")[0] for p in setuptools["packages"]}:
-        shutil.copytree(ROOT / top, dest / top, ignore=shutil.ignore_patterns("__pycache__"))
-    for name in ("pyproject.toml", config["project"]["readme"]):
+        shutil.copytree(ROOT / top, dest / top,
+                        ignore=shutil.ignore_patterns("__pycache__", "*.so", "_lookahead.c"))
+    for name in ("pyproject.toml", "setup.py", config["project"]["readme"]):
         shutil.copy(ROOT / name, dest / name)
     return dest
 
@@ -84,6 +86,8 @@ def test_the_installed_copy_runs_on_its_own_files(installed):
     assert {name.split(".")[0] for name in probe["modules"]} == set(TOP_LEVEL)
     outside = [f for f in probe["modules"].values() if not Path(f).resolve().is_relative_to(site)]
     assert outside == []
+    # The wheel carries the planner's compiled core, built from the copied sources.
+    assert Path(probe["modules"]["planning._lookahead"]).suffix == ".so"
     shipped_scenarios = sorted(p.name for p in (ROOT / "scenarios").glob("*.toml"))
     assert probe["scenarios"] == shipped_scenarios
     assert probe["models"] == sorted(

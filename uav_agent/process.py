@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from planning import PlannerError, lookahead_policy, require_planner
 from shared import access, bus
 from shared.measurements import MeasurementSpec, SpotFilter, scenario_features
 from shared.messages import (
@@ -109,8 +110,8 @@ class Models:
         if not self._newer(update):
             return None
         if isinstance(update, ValueWeights):
-            return LookaheadPolicy(self.scenario, from_bytes(update.data,
-                                                             expected={"kind": "value"}))
+            return lookahead_policy(self.scenario, from_bytes(update.data,
+                                                              expected={"kind": "value"}))
         raster = self._raster(update)
         raster.route_fields_kept = ROUTE_FIELDS_KEPT
         radio_map = RasterMap(self.scenario, [raster], np.zeros(1, dtype=np.int64))
@@ -467,6 +468,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        require_planner()
         scenario = load_scenario(args.scenario)
         if args.uav is not None and not 0 <= args.uav < MAX_UAVS:
             raise ValueError(f"--uav must be between 0 and {MAX_UAVS - 1}")
@@ -486,7 +488,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.uav is None:
                 raise ValueError("--credentials needs --uav: an agent logs in as agent-<uav>")
             login = access.login_for(args.credentials, access.agent_role(args.uav))
-    except (ScenarioError, ValueError, bus.BusError) as exc:
+    except (ScenarioError, ValueError, bus.BusError, PlannerError) as exc:
         print(f"agent: error: {exc}", file=sys.stderr)
         return 2
     log = bus.setup_logging(f"agent-{'?' if args.uav is None else args.uav}")
