@@ -33,7 +33,7 @@ BLIP_S = 1.0
 ON_S = 10.0  # a jammer long enough on to be confirmed, estimated and mapped, then off
 AFTER_S = 60.0  # flight after the blip: a corrected map still in service then is "never"
 TARGET_S = 5.0
-STILL_S = 1800.0  # flight with a still jammer, per Table I setting
+STILL_S = 900.0  # flight with a still jammer, per Table I setting
 
 
 def run() -> list[Figure]:
