@@ -409,6 +409,8 @@ class OnlineSinrMapper:
                 done = len(memory.since(refining_since))
                 self._change = _Change(refining_since, self.clock(), done, estimate, done,
                                        done, confirmed=True)
+        # The change whose handling made the correction in service.
+        self._correction_change = self._change
 
     @property
     def version(self) -> int:
@@ -566,8 +568,11 @@ class OnlineSinrMapper:
     def _withdraw_locked(self, jammer: JammerEstimate | JammerHypotheses,
                          check: WithdrawalCheck) -> PublishedWeights | None:
         """The reports say ``jammer`` is gone: the survey map goes back in service (what to
-        publish, None if it is in service already) and the detector watches it afresh."""
-        self._settle_locked()
+        publish, None if it is in service already) and the detector watches it afresh. A
+        change detected since that map went out (the jammer moved) is handled on: its
+        reports are what the next estimate needs."""
+        if self._change is None or self._change is self._correction_change:
+            self._settle_locked()
         withdrawn_version = self._version
         published = None
         if self._network is not self._base:
@@ -692,6 +697,7 @@ class OnlineSinrMapper:
             self._provisional = provisional
             self.estimate, self._estimate_sigma_db = estimate, sigma_db
             self._correction, self._withdrawal = jammer, withdrawal
+            self._correction_change = change
             published = PublishedWeights(weights, sha256(weights), self._version,
                                          result.accuracy, estimate,
                                          None if estimate is None else change.start,
@@ -739,10 +745,12 @@ class OnlineSinrMapper:
     def _withdraw_unfitted(self, change: _Change, jammer: JammerEstimate | JammerHypotheses,
                            check: WithdrawalCheck) -> None:
         """The reports a correction was to be fitted on already show its jammer gone: it is
-        not fitted, and any map of that change in service is withdrawn."""
+        not fitted, the change's handling ends, and any corrected map in service is
+        withdrawn."""
         with self._lock:
             if self._change is not change:
                 return
+            self._settle_locked()
             published = self._withdraw_locked(jammer, check)
         if published is not None and self.publish is not None:
             self.publish(published)
