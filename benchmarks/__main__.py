@@ -11,7 +11,7 @@ import sys
 import time
 
 BENCHMARKS = ["bench_radio", "bench_world", "bench_policy", "bench_sinr", "bench_adaptation",
-              "bench_correction", "bench_map_ceiling",
+              "bench_blip", "bench_correction", "bench_map_ceiling",
               "bench_bus", "bench_agreement", "bench_fleet", "bench_outbox", "bench_recording",
               "bench_console", "bench_scale", "bench_planning"]
 

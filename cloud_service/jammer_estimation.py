@@ -142,6 +142,9 @@ class JammerEstimate(NamedTuple):
     cov_xy_m2: float | None = None  # posterior covariance of x and y
 
 
+NO_JAMMER = JammerEstimate(False, None, None, None, None, None, None, None, 0, 0.0)
+
+
 class SinrBelief(NamedTuple):
     """What the cloud believes of the world's no-jammer SINR at some points (Gaussian, dB)."""
 
@@ -518,6 +521,25 @@ class JammerHypotheses(NamedTuple):
     weights: np.ndarray
 
 
+def posterior_hypotheses(estimate: JammerEstimate) -> JammerHypotheses:
+    """A present ``estimate`` as six equally weighted hypotheses, sqrt(3) standard deviations
+    either side of it along its position's principal axes and its power (dB): the sigma
+    points of its posterior, which share its mean and covariance. Weighed against these, a
+    report along a zone edge the estimate is unsure of counts as the uncertainty allows, not
+    as if the edge were exact."""
+    cov_xy = estimate.cov_xy_m2 or 0.0
+    variances, axes = np.linalg.eigh([[estimate.sd_x_m**2, cov_xy], [cov_xy, estimate.sd_y_m**2]])
+    reach = math.sqrt(3.0)
+    hypotheses = []
+    for sign in (-1.0, 1.0):
+        for variance, axis in zip(variances.tolist(), axes.T, strict=True):
+            dx, dy = sign * reach * math.sqrt(max(variance, 0.0)) * axis
+            hypotheses.append(estimate._replace(x=estimate.x + dx, y=estimate.y + dy))
+        hypotheses.append(estimate._replace(
+            power_w=estimate.power_w * 10.0 ** (sign * reach * estimate.sd_power_db / 10.0)))
+    return JammerHypotheses(hypotheses, np.full(len(hypotheses), 1.0 / len(hypotheses)))
+
+
 def jammer_hypotheses(
     scenario: Scenario,
     xy: np.ndarray,
@@ -766,7 +788,7 @@ def corrected_level_probabilities(
     matters loses more than it corrects. ``no_jammer_levels_at`` maps points (m, 2) to
     levels (m,) or, better, to the probabilities of each level (m, levels), e.g. the
     no-jammer SINR network's on their features. With ``present`` false, the no-jammer map's
-    most probable level is certain.
+    most probable level, certain but for the receiver's ``report_sigma_db``.
     """
     xy = np.asarray(xy, dtype=np.float64)
     probabilities = _corrected(scenario, _map_at(scenario, no_jammer_levels_at, xy), jammer,
@@ -787,11 +809,16 @@ def ideal_model_spread_db(scenario: Scenario, survey_sigma_db: float) -> float |
 
 
 def ideal_level_probabilities(scenario: Scenario, xy: np.ndarray,
-                              jammer: JammerEstimate | None, spread_db: float) -> np.ndarray:
+                              jammer: JammerEstimate | JammerHypotheses | None,
+                              spread_db: float) -> np.ndarray:
     """How probable the ideal model (Eq. 1-5, with the estimated ``jammer`` if one is
-    present) makes each level at points ``xy`` (n, 2), give or take ``spread_db``
-    (``ideal_model_spread_db``): (n, levels); 0 where ``xy`` is NaN (a report that cannot be
-    placed)."""
+    present; with hypotheses of one, the mixture of theirs by weight) makes each level at
+    points ``xy`` (n, 2), give or take ``spread_db`` (``ideal_model_spread_db``): (n,
+    levels); 0 where ``xy`` is NaN (a report that cannot be placed)."""
+    if isinstance(jammer, JammerHypotheses):
+        return sum(weight * ideal_level_probabilities(scenario, xy, estimate, spread_db)
+                   for estimate, weight in zip(jammer.estimates, jammer.weights.tolist(),
+                                               strict=True))
     radio = RadioModel(scenario, shadowed=False)
     params = None if jammer is None or not jammer.present else _params_of(scenario, jammer)
     sinr_db = radio.evaluate(np.asarray(xy, dtype=np.float64), params).sinr_db[:, None]
@@ -823,9 +850,8 @@ def _corrected(scenario: Scenario, no_jammer: np.ndarray,
     estimates, weights = ((jammer.estimates, jammer.weights.tolist())
                           if isinstance(jammer, JammerHypotheses) else ([jammer], [1.0]))
     base = no_jammer.argmax(axis=-1)
-    certain = np.eye(scenario.channel.level_count)[base]
-    if not any(estimate.present for estimate in estimates):
-        return sum(weight * certain for weight in weights)
+    if report_sigma_db == 0.0 and not any(estimate.present for estimate in estimates):
+        return np.eye(scenario.channel.level_count)[base]  # what the map says, for certain
     radio = RadioModel(scenario, shadowed=False)
     # The GBS side once; each hypothesis adds only its own jammer term.
     _, signal, co_channel = radio.serving(radio.gbs_received_power(flat))
@@ -838,12 +864,11 @@ def _corrected(scenario: Scenario, no_jammer: np.ndarray,
     bounds = np.concatenate([[-np.inf], radio.level_edges_db, [np.inf]])[:, None]
     total = 0.0
     for estimate, weight in zip(estimates, weights, strict=True):
-        if not estimate.present:
-            total = total + weight * certain
-            continue
-        jammed = radio.sinr_of(signal, co_channel,
-                               radio.jammer_interference(flat, _params_of(scenario, estimate)))
-        loss_db = ideal_db - 10.0 * np.log10(jammed)
+        loss_db = np.zeros_like(ideal_db)  # no jammer: what the map says, as a receiver reports it
+        if estimate.present:
+            jammed = radio.sinr_of(signal, co_channel, radio.jammer_interference(
+                flat, _params_of(scenario, estimate)))
+            loss_db = ideal_db - 10.0 * np.log10(jammed)
         # Level k needs the no-jammer SINR in [bounds_k + loss, bounds_k+1 + loss) and its band.
         low = np.maximum(band_low, bounds[:-1] + loss_db)
         high = np.minimum(band_high, bounds[1:] + loss_db)

@@ -202,8 +202,10 @@ class CloudService:
                    "retrain": retrain or RetrainConfig(max_seconds=None)} if lockstep
                   else {"retrain": retrain})
         self.mapper = OnlineSinrMapper(self.scenario, self.memory, network, float(accuracy),
-                                       base_network=base, publish=self._on_retrained,
-                                       **timing, version=version, estimate=estimate,
+                                       base_network=base,
+                                       base_accuracy=float(base_card.get("accuracy", accuracy)),
+                                       publish=self._on_retrained, **timing, version=version,
+                                       estimate=estimate,
                                        refining_since=refining_since
                                        if isinstance(refining_since, int | float) else None)
         data = path.read_bytes()
@@ -349,6 +351,10 @@ class CloudService:
             elif event["type"] == "estimate_not_converged":
                 self.log.info("jammer estimate not converged on %d measurements; trying again "
                               "as more arrive", event["measurements"])
+            elif event["type"] == "estimate_withdrawn":
+                self.log.info("jammer estimate withdrawn: %.1f nats against it from the reports "
+                              "since t=%.1f; the survey map is in service as v%d",
+                              event["evidence_nats"], event["evidence_since"], event["version"])
             elif event["type"] == "retrain_failed":
                 self._publish_event(RetrainFailed(t=event["t"], source=ROLE,
                                                   version=event["version"],

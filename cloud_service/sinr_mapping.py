@@ -31,6 +31,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from cloud_service.jammer_estimation import (
+    NO_JAMMER,
     REPORT_SIGMA_DB,
     JammerEstimate,
     JammerHypotheses,
@@ -41,6 +42,7 @@ from cloud_service.jammer_estimation import (
     ideal_model_spread_db,
     locate_jammer,
     positions_from_features,
+    posterior_hypotheses,
     sigma_fit_sample,
 )
 from cloud_service.sinr_memory import SinrMemory, Uploads
@@ -189,6 +191,66 @@ class ChangeDetector:
         return DetectorCheck(float(times[-1]), source, self._statistic[source], False)
 
 
+class WithdrawalCheck(NamedTuple):
+    t: float  # time of the last report fed
+    statistic: float  # nats against the jammer behind the map, after those reports
+    since: float | None  # when the run of evidence that the statistic holds began
+    reports: int  # reports weighed against that jammer so far
+    fired: bool
+
+
+@dataclass
+class WithdrawalTest:
+    """Whether the jammer behind the map in service is still there.
+
+    Rule, a CUSUM over every UAV's reports in the order taken: S <- max(0, S + log(q / p)),
+    with p and q the report model's probability of the reported level with that jammer and
+    without any (``OnlineSinrMapper.model_probability``, the model the detector weighs
+    reports by), each at least ``floor``. A report where the jammer changes nothing weighs
+    nothing; one where it should have lowered the level and did not pushes S up; one it
+    explains pulls S down. The jammer is taken for gone (or moved) when S reaches
+    ``threshold`` (``online_map.withdrawal_threshold``, measured there).
+
+    Why pooled over the UAVs, unlike the detector: the evidence lies only in the zone the
+    jammer is believed to cover, which the UAVs cross by turns; what one UAV's reports there
+    show of a still jammer answers another's run along a zone edge the estimate misplaced.
+    """
+
+    threshold: float
+    floor: float
+    statistic: float = 0.0
+    since: float | None = None
+    reports: int = 0
+
+    @classmethod
+    def of(cls, scenario: Scenario) -> WithdrawalTest:
+        online = scenario.online_map
+        return cls(online.withdrawal_threshold, online.probability_floor)
+
+    def update(self, with_jammer: np.ndarray, without: np.ndarray,
+               times: np.ndarray) -> WithdrawalCheck | None:
+        """Feed new reports (their probability with the jammer and without, when taken);
+        the state after them, ``fired`` at the first report that takes S to the threshold;
+        None when given nothing."""
+        if len(times) == 0:
+            return None
+        for step, t in zip(self.evidence(with_jammer, without).tolist(),
+                           np.asarray(times).tolist(), strict=True):
+            if self.statistic == 0.0:
+                self.since = t
+            self.statistic = max(0.0, self.statistic + step)
+            self.reports += 1
+            if self.statistic >= self.threshold:
+                return WithdrawalCheck(t, self.statistic, self.since, self.reports, True)
+        return WithdrawalCheck(float(times[-1]), self.statistic, self.since, self.reports,
+                               False)
+
+    def evidence(self, with_jammer: np.ndarray, without: np.ndarray) -> np.ndarray:
+        """Nats each report weighs against the jammer: log(q / p), both at least ``floor``."""
+        return (np.log(np.maximum(without, self.floor))
+                - np.log(np.maximum(with_jammer, self.floor)))
+
+
 # -- the online mapper --------------------------------------------------------------------------
 class PublishedWeights(NamedTuple):
     data: bytes  # safetensors
@@ -266,6 +328,14 @@ class OnlineSinrMapper:
        the prior plus every post-change upload and published at once, with the estimate;
     3. every ``retrain.refine_every`` further measurements, estimate and fit again, until
        ``retrain.settle_after``; then the detector re-arms on the final map.
+    4. from the first corrected map on (an estimate's or a provisional one), every report is
+       weighed against the jammer it was corrected for (``WithdrawalTest``; at a fit, the
+       post-change reports it was fitted on first). Once they show that jammer gone or
+       moved, it is withdrawn (``estimate_withdrawn``): the survey map is published again,
+       the handling of the change ends and the detector re-arms on the survey map, so a
+       jammer that stands elsewhere is detected and estimated afresh from reports taken
+       after the withdrawal. A corrected map already contradicted by the reports it was
+       fitted on is not published.
     Without any converged estimate, the DNN alone retrains on ``retrain.min_samples``
     post-change measurements, once the estimate was tried ``retrain.min_tries`` times (the
     paper's path), with the survey map as its prior where the uploads have not been. Work
@@ -276,7 +346,8 @@ class OnlineSinrMapper:
     ``estimate``: the jammer estimate behind ``network``, for a cloud that restarts on the map
     it last published (the detector weighs reports by it, see ``report_probability``), and
     ``refining_since`` the start of the change that map was still refining: the refinement
-    goes on from the memory, which the restart kept.
+    goes on from the memory, which the restart kept. ``base_accuracy``: the survey map's, for
+    its publication when an estimate is withdrawn (``accuracy`` without a ``base_network``).
     """
 
     def __init__(
@@ -296,6 +367,7 @@ class OnlineSinrMapper:
         seed: int = 0,
         estimate: JammerEstimate | None = None,
         refining_since: float | None = None,
+        base_accuracy: float | None = None,
     ):
         self.scenario = scenario
         self.memory = memory
@@ -308,9 +380,15 @@ class OnlineSinrMapper:
         self.background = background
         self.events: list[dict[str, Any]] = []
         self.estimate = estimate
-        self._estimate_sigma_db = 0.0  # the shadowing fitted beside ``estimate``
+        # The jammer the map in service was corrected for: a converged estimate, or the
+        # hypotheses of a provisional map; None on an uncorrected map.
+        self._correction: JammerEstimate | JammerHypotheses | None = (
+            estimate if estimate is not None and estimate.present else None)
+        self._estimate_sigma_db = 0.0  # the shadowing fitted beside ``_correction``
+        self._withdrawal = WithdrawalTest.of(scenario)
         self._network = network
         self._base = base_network or network
+        self._base_accuracy = accuracy if base_network is None else base_accuracy
         self._accuracy = accuracy
         self._provisional = False  # whether the map in service is a provisional one
         self._version = version
@@ -329,7 +407,10 @@ class OnlineSinrMapper:
             self._estimate_sigma_db = survey_sigma_db
             if refining_since is not None:  # as if that map had just been fitted
                 done = len(memory.since(refining_since))
-                self._change = _Change(refining_since, done, estimate, done, done)
+                self._change = _Change(refining_since, self.clock(), done, estimate, done,
+                                       done, confirmed=True)
+        # The change whose handling made the correction in service.
+        self._correction_change = self._change
 
     @property
     def version(self) -> int:
@@ -360,7 +441,10 @@ class OnlineSinrMapper:
                     "recent_uploads": len(self._recent),
                     "phase": "watching" if change is None else change.phase,
                     "since_change": None if change is None else change.measurements,
-                    "provisional": self._provisional, "estimate": self.estimate}
+                    "provisional": self._provisional, "estimate": self.estimate,
+                    # Nats the reports hold against the jammer the map was corrected for.
+                    "withdrawal_evidence": None if self._correction is None
+                    else self._withdrawal.statistic}
 
     def ingest(self, uploads: Uploads) -> IngestReport:
         stored, duplicates = self.memory.store(uploads)
@@ -372,11 +456,15 @@ class OnlineSinrMapper:
         has the round taken as one batch)."""
         check = None
         with self._lock:
+            withdrawn = None
             if len(stored):
                 probabilities = predict_probabilities(self._network, stored.features)
                 self._recent.extend((probabilities.argmax(-1) == stored.levels).tolist())
-                if self._change is None:
-                    xy = positions_from_features(self.scenario, stored.features)
+                xy = positions_from_features(self.scenario, stored.features)
+                if self._correction is not None:
+                    withdrawn = self._weigh_correction(stored, xy)
+                # The reports that withdrew a map are not weighed again against the survey map.
+                if withdrawn is None and self._change is None:
                     probability = self.report_probability(stored, probabilities, xy)
                     # The map is learned over the area only and extrapolates past its edge,
                     # where a UAV flown out (avoidance pushes some out in a crowd) contradicts
@@ -389,7 +477,7 @@ class OnlineSinrMapper:
                                                  stored.times[inside])
                     if check is not None and check.fired:
                         self._on_change(check)
-                else:
+                elif self._change is not None:
                     self._change.measurements += int((stored.times >= self._change.start).sum())
             job = None
             if not self._busy and self._change is not None:  # one worker at a time
@@ -402,6 +490,8 @@ class OnlineSinrMapper:
                 self._worker.start()
             else:
                 self._run(job)
+        if withdrawn is not None and self.publish is not None:
+            self.publish(withdrawn)
         return IngestReport(len(stored), duplicates, check)
 
     @property
@@ -427,23 +517,95 @@ class OnlineSinrMapper:
         reports were taken (``positions_from_features`` of their features, if not given)."""
         if xy is None:
             xy = positions_from_features(self.scenario, stored.features)
-        reported = np.take_along_axis(probabilities, stored.levels[:, None], -1)[:, 0]
-        if self._model_spread_db is not None:
-            ideal = ideal_level_probabilities(self.scenario, xy, self.estimate,
-                                              self._model_spread_db)
-            reported = np.fmax(reported,
-                               np.take_along_axis(ideal, stored.levels[:, None], -1)[:, 0])
-        if self.estimate is None or not self.estimate.present:
+        reported = _of_reported(probabilities, stored.levels)
+        if self.estimate is not None and self.estimate.present:
+            model = self.model_probability(stored.levels, xy, self.estimate,
+                                           self._estimate_sigma_db)
+        elif self._model_spread_db is not None:
+            model = _of_reported(ideal_level_probabilities(
+                self.scenario, xy, None, self._model_spread_db), stored.levels)
+        else:
             return reported
-        model = corrected_level_probabilities(
-            self.scenario, self._no_jammer_probabilities, self.estimate, xy,
-            shadowing_sigma_db=self._estimate_sigma_db, report_sigma_db=REPORT_SIGMA_DB)
         # fmax: a report whose position cannot be recovered has the map's probability only.
-        return np.fmax(reported, np.take_along_axis(model, stored.levels[:, None], -1)[:, 0])
+        return np.fmax(reported, model)
+
+    def model_probability(self, levels: np.ndarray, xy: np.ndarray,
+                          jammer: JammerEstimate | JammerHypotheses | None,
+                          shadowing_sigma_db: float) -> np.ndarray:
+        """How probable the cloud's models make each reported level (n,), taken at ``xy``
+        (n, 2), with ``jammer`` (an estimate, a provisional map's hypotheses, or None: no
+        jammer): the no-jammer map corrected by it as a receiver reports
+        (``corrected_level_probabilities``, at ``shadowing_sigma_db``), or the ideal model
+        with it where the survey map keeps to that model, whichever expected the report
+        more. NaN where ``xy`` is."""
+        model = _of_reported(corrected_level_probabilities(
+            self.scenario, self._no_jammer_probabilities, jammer or NO_JAMMER, xy,
+            shadowing_sigma_db=shadowing_sigma_db, report_sigma_db=REPORT_SIGMA_DB), levels)
+        if self._model_spread_db is None:
+            return model
+        return np.fmax(model, _of_reported(ideal_level_probabilities(
+            self.scenario, xy, jammer, self._model_spread_db), levels))
+
+    def _withdrawal_evidence(self, data: MeasurementBatch, xy: np.ndarray,
+                             jammer: JammerEstimate | JammerHypotheses, sigma_db: float):
+        """The reports of ``data`` placed inside the area (beyond its edge the map is no
+        evidence, see ``ingest``): their probability with ``jammer`` and without, and when
+        each was taken, for ``WithdrawalTest.update``. An estimate is weighed with its
+        uncertainty (``posterior_hypotheses``): a still jammer's first estimate, 7 m and
+        1.8 dB off with an 8 m sd, was withdrawn by one UAV's run along the zone edge it
+        misplaced when taken as exact (bench_adaptation, icc2021, change 116)."""
+        kept = np.flatnonzero(np.isfinite(xy).all(axis=1) & ~self.scenario.area.outside(xy))
+        levels, xy = data.levels[kept], xy[kept]
+        if isinstance(jammer, JammerEstimate):
+            jammer = posterior_hypotheses(jammer)
+        return (self.model_probability(levels, xy, jammer, sigma_db),
+                self.model_probability(levels, xy, None, sigma_db), data.times[kept])
+
+    def _weigh_correction(self, stored: MeasurementBatch,
+                          xy: np.ndarray) -> PublishedWeights | None:
+        """New reports weighed against the jammer the map in service was corrected for;
+        the survey map to publish when they withdraw it."""
+        check = self._withdrawal.update(*self._withdrawal_evidence(
+            stored, xy, self._correction, self._estimate_sigma_db))
+        if check is None or not check.fired:
+            return None
+        return self._withdraw_locked(self._correction, check)
+
+    def _withdraw_locked(self, jammer: JammerEstimate | JammerHypotheses,
+                         check: WithdrawalCheck) -> PublishedWeights | None:
+        """The reports say ``jammer`` is gone: the survey map goes back in service (what to
+        publish, None if it is in service already) and the detector watches it afresh. A
+        change detected since that map went out (the jammer moved) is handled on: its
+        reports are what the next estimate needs."""
+        if self._change is None or self._change is self._correction_change:
+            self._settle_locked()
+        withdrawn_version = self._version
+        published = None
+        if self._network is not self._base:
+            weights = to_bytes(self._base)
+            self._version += 1
+            self._network, self._accuracy = self._base, self._base_accuracy
+            published = PublishedWeights(weights, sha256(weights), self._version,
+                                         self._base_accuracy, None)
+        self.estimate, self._correction, self._provisional = None, None, False
+        estimate = jammer if isinstance(jammer, JammerEstimate) else None
+        self.events.append({
+            "type": "estimate_withdrawn", "t": self.clock(), "version": self._version,
+            "withdrawn_version": None if published is None else withdrawn_version,
+            "provisional": estimate is None,
+            **{key: None if estimate is None else getattr(estimate, key)
+               for key in ("x", "y", "power_w")},
+            "evidence_nats": check.statistic, "evidence_since": check.since,
+            "reports": check.reports})
+        if published is not None:
+            self.events.append({"type": "sinr_weights_published", "t": self.clock(),
+                                "version": self._version, "accuracy": self._base_accuracy,
+                                "samples": 0, "train_seconds": 0.0, "provisional": False})
+        return published
 
     def _on_change(self, check: DetectorCheck) -> None:
         start = self.detector.change_start
-        self._change = _Change(start, len(self.memory.since(start)))
+        self._change = _Change(start, self.clock(), len(self.memory.since(start)))
         self.events.append({"type": "change_detected", "t": self.clock(),
                             "version": self._version, "source": check.source,
                             "accuracy": float(np.mean(self._recent)), "change_time": start})
@@ -454,8 +616,8 @@ class OnlineSinrMapper:
             data = self.memory.since(change.start)
             if job == "estimate":
                 self._try_estimate(change, data)
-            elif job == "fit":
-                self._fit(change, data, change.estimate)
+            elif job == "fit":  # the DNN alone, the jammer neither placed nor confirmed
+                self._fit(change, data, None)
             else:  # "settle": the map stands, the detector watches it
                 self._settle(change)
         except Exception as exc:  # a failed adaptation must not leave the mapper stuck
@@ -507,10 +669,13 @@ class OnlineSinrMapper:
         prior_xy = self._prior_positions()
         prior_features = scenario_features(self.scenario, prior_xy)
         sigma_db = 0.0
+        withdrawal = WithdrawalTest.of(self.scenario)
         if jammer is None:
             prior_levels = self._no_jammer_probabilities(prior_xy).argmax(axis=-1)
         else:
             sigma_db = self._shadowing_sigma(prior_xy)
+            if not self._may_serve(change, data, jammer, sigma_db, withdrawal):
+                return
             prior_levels = corrected_levels(self.scenario, self._no_jammer_probabilities,
                                             jammer, prior_xy, shadowing_sigma_db=sigma_db)
         features = np.concatenate([features, prior_features])
@@ -530,11 +695,15 @@ class OnlineSinrMapper:
         change.fitted_at = len(data)
         weights = to_bytes(result.network)
         with self._lock:
+            if self._change is not change:  # withdrawn while it was being fitted
+                return
             self._network = result.network
             self._version += 1
             self._accuracy = result.accuracy
             self._provisional = provisional
             self.estimate, self._estimate_sigma_db = estimate, sigma_db
+            self._correction, self._withdrawal = jammer, withdrawal
+            self._correction_change = change
             published = PublishedWeights(weights, sha256(weights), self._version,
                                          result.accuracy, estimate,
                                          None if estimate is None else change.start,
@@ -551,6 +720,47 @@ class OnlineSinrMapper:
             self.publish(published)
         if jammer is None:  # the paper's path: one retraining per change
             self._settle(change)
+
+    def _may_serve(self, change: _Change, data: MeasurementBatch,
+                   jammer: JammerEstimate | JammerHypotheses, sigma_db: float,
+                   withdrawal: WithdrawalTest) -> bool:
+        """Whether a map corrected for ``jammer`` may go out: the post-change reports it is
+        to be fitted on do not already show that jammer gone (else it is withdrawn,
+        ``_withdraw_unfitted``) and, for a change's first map, confirm it (``_confirmed``).
+        ``withdrawal`` is left fed with those reports."""
+        evidence = self._withdrawal_evidence(
+            data, positions_from_features(self.scenario, data.features), jammer, sigma_db)
+        check = withdrawal.update(*evidence)
+        if check is not None and check.fired:
+            self._withdraw_unfitted(change, jammer, check)
+            return False
+        return self._confirmed(change, withdrawal, *evidence)
+
+    def _confirmed(self, change: _Change, withdrawal: WithdrawalTest, with_jammer: np.ndarray,
+                   without: np.ndarray, times: np.ndarray) -> bool:
+        """Whether the reports taken since the change was detected show its jammer still
+        there, by ``online_map.confirmation_threshold`` nats at least. A jammer seen only in
+        the reports that raised the change (a blip, switched off since) is fitted by a still
+        jammer placed where no later report could contradict it; such a phantom is never
+        served, and the change's first corrected map waits for this."""
+        if not change.confirmed:
+            support = -withdrawal.evidence(with_jammer, without)[times > change.detected_at]
+            change.confirmed = float(support.sum()) >= (
+                self.scenario.online_map.confirmation_threshold)
+        return change.confirmed
+
+    def _withdraw_unfitted(self, change: _Change, jammer: JammerEstimate | JammerHypotheses,
+                           check: WithdrawalCheck) -> None:
+        """The reports a correction was to be fitted on already show its jammer gone: it is
+        not fitted, the change's handling ends, and any corrected map in service is
+        withdrawn."""
+        with self._lock:
+            if self._change is not change:
+                return
+            self._settle_locked()
+            published = self._withdraw_locked(jammer, check)
+        if published is not None and self.publish is not None:
+            self.publish(published)
 
     def _settle(self, change: _Change) -> None:
         with self._lock:
@@ -603,25 +813,33 @@ class OnlineSinrMapper:
         self.memory.close()
 
 
+def _of_reported(probabilities: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """Each row's probability (n, levels) of its reported level (n,)."""
+    return np.take_along_axis(probabilities, levels[:, None], -1)[:, 0]
+
+
 @dataclass
 class _Change:
     """A detected change while the mapper handles it."""
 
     start: float  # the detector's estimate of when it happened
+    detected_at: float  # when it was detected (the mapper's clock)
     measurements: int  # stored since ``start``
     estimate: JammerEstimate | None = None
     tried_at: int = 0  # post-change measurements at the last estimate attempt
     tries: int = 0  # estimate attempts
     fitted_at: int = 0  # ... at the last fit
     failure_logged: bool = False
+    # Whether reports since the detection showed the jammer still there (see ``_confirmed``).
+    confirmed: bool = False
 
     @property
     def phase(self) -> str:
-        return "estimating" if self.estimate is None else "refining"
+        return "refining" if self.estimate is not None and self.confirmed else "estimating"
 
     def next_job(self, config: RetrainConfig) -> str | None:
         n = self.measurements
-        if self.estimate is None:
+        if self.estimate is None or not self.confirmed:
             if n >= config.min_samples and self.tries >= config.min_tries:
                 return "fit"
             if n >= max(config.estimate_from, self.tried_at + config.estimate_every,

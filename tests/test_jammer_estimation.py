@@ -24,6 +24,7 @@ from cloud_service.jammer_estimation import (
     jammer_hypotheses,
     locate_jammer,
     positions_from_features,
+    posterior_hypotheses,
     report_shares,
 )
 from shared.measurements import SpotFilter, scenario_features
@@ -443,3 +444,19 @@ def test_the_ideal_models_probabilities_of_the_levels(scenario):
     assert ideal_level_probabilities(scenario, at, under, 0.01)[0, level_here] < 0.001
     assert (ideal_level_probabilities(scenario, np.array([[np.nan, np.nan]]), None,
                                       0.01) == 0.0).all()
+
+
+def test_an_estimates_sigma_points_share_its_mean_and_covariance():
+    estimate = JammerEstimate(True, 3.0, -7.0, 0.8, 9.0, 4.0, 2.0, 1.5, 500, 30.0, 3.0)
+    hypotheses = posterior_hypotheses(estimate)
+    xy = np.array([[h.x, h.y] for h in hypotheses.estimates])
+    power_db = 10.0 * np.log10([h.power_w for h in hypotheses.estimates])
+    weights = hypotheses.weights
+    assert weights.sum() == pytest.approx(1.0)
+    assert weights @ xy == pytest.approx([3.0, -7.0])
+    centred = xy - (3.0, -7.0)
+    covariance = (centred * weights[:, None]).T @ centred
+    assert covariance == pytest.approx(np.array([[16.0, 3.0], [3.0, 4.0]]))
+    assert weights @ power_db == pytest.approx(10.0 * np.log10(0.8))
+    assert weights @ (power_db - 10.0 * np.log10(0.8)) ** 2 == pytest.approx(1.5**2)
+

@@ -11,7 +11,12 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from cloud_service.jammer_estimation import JammerEstimate as EstimatedJammer
-from cloud_service.jammer_estimation import JammerFit, JammerHypotheses, jammer_hypotheses
+from cloud_service.jammer_estimation import (
+    JammerFit,
+    JammerHypotheses,
+    jammer_hypotheses,
+    positions_from_features,
+)
 from cloud_service.online_map_sim import Fleet, jammer_params
 from cloud_service.process import estimate_of, map_card
 from cloud_service.sinr_mapping import (
@@ -36,7 +41,7 @@ from shared.measurements import (
     predict_probabilities,
     scenario_features,
 )
-from shared.networks import from_bytes
+from shared.networks import from_bytes, to_bytes
 from shared.paper import TABLE_I_JAMMERS
 from shared.radio import RadioModel
 
@@ -490,7 +495,7 @@ def test_the_dnn_alone_waits_for_the_estimators_tries():
     """A large fleet brings ``min_samples`` in before the estimate is tried twice: the
     estimator tries on, growing its data, until ``min_tries``; then the DNN alone may go."""
     config = RetrainConfig()
-    change = _Change(start=0.0, measurements=3 * config.min_samples,
+    change = _Change(start=0.0, detected_at=0.0, measurements=3 * config.min_samples,
                      tried_at=2 * config.min_samples, tries=2)
     assert change.next_job(config) == "estimate"
     change.tried_at = change.measurements
@@ -655,3 +660,138 @@ def test_a_refits_prior_is_as_large_as_the_scenario_says(mapping_scenario, no_ja
     area = scenario.area
     assert (prior[:, 0] >= area.x_min).all() and (prior[:, 0] <= area.x_max).all()
     assert (prior[:, 1] >= area.y_min).all() and (prior[:, 1] <= area.y_max).all()
+
+
+# -- withdrawal of an estimate whose jammer is gone ---------------------------------------------
+def _believed(setting) -> EstimatedJammer:
+    """An estimate that puts the jammer exactly where ``setting`` stands."""
+    return EstimatedJammer(present=True, x=setting.x, y=setting.y, power_w=setting.power_w,
+                           effective_power_dbm=10.0, sd_x_m=1.0, sd_y_m=1.0, sd_power_db=0.3,
+                           measurements=2000, log_likelihood_ratio=50.0)
+
+
+def _corrected_mapper(scenario, survey, accuracy, estimate):
+    """A mapper restarted on a map corrected with ``estimate`` (its own copy of the survey
+    network stands for it here: the survey map is the base it returns to)."""
+    published = []
+    corrected = from_bytes(to_bytes(survey))
+    mapper, now = _online(scenario, corrected, accuracy, background=False, estimate=estimate,
+                          base_network=survey, version=5, publish=published.append)
+    return mapper, now, published
+
+
+def _jammed_zone(scenario, setting, count):
+    """``count`` points inside the area where the jammer of ``setting`` lowers the ideal
+    model's level by one at least, nearest the jammer first."""
+    radio = RadioModel(scenario, shadowed=False)
+    xy = simulated_measurements(scenario, None, 20_000, np.random.default_rng(8)).features
+    xy = positions_from_features(scenario, xy)
+    quiet = radio.evaluate(xy).level
+    jammed = radio.evaluate(xy, jammer_params(scenario, setting)).level
+    zone = xy[jammed < quiet]
+    zone = zone[np.argsort(np.hypot(*(zone - (setting.x, setting.y)).T))][:count]
+    assert len(zone) == count
+    return zone
+
+
+def _reports_at(scenario, xy, setting, t):
+    """Reports at ``xy`` as an exact receiver takes them with the jammer of ``setting`` (None:
+    switched off), one UAV's, evenly over the second that ends at ``t``."""
+    levels = RadioModel(scenario, shadowed=False).evaluate(
+        xy, jammer_params(scenario, setting)).level
+    times = t - 1.0 + np.arange(1, len(xy) + 1) / len(xy)
+    return labelled_batch(scenario, xy, levels, np.random.default_rng(int(t)), time=times,
+                          source="uav-0")
+
+
+def test_an_estimate_whose_jammer_is_switched_off_is_withdrawn(mapping_scenario,
+                                                               no_jammer_map):
+    """The jammer the map was corrected for is switched off: reports where it would have
+    lowered the level show the survey's level. One such report never withdraws it (it weighs
+    at most log(1 / probability_floor) nats, below the threshold); enough of them do, and
+    the survey map goes back in service, published without an estimate."""
+    survey, accuracy = no_jammer_map
+    online = mapping_scenario.online_map
+    one_report_nats = -math.log(online.probability_floor)
+    assert online.withdrawal_threshold > one_report_nats  # else one report would do
+    setting = TABLE_I_JAMMERS[0]
+    mapper, now, published = _corrected_mapper(mapping_scenario, survey, accuracy,
+                                                _believed(setting))
+    zone = _jammed_zone(mapping_scenario, setting, 40)
+    now[0] = 30.0
+    mapper.ingest(_reports_at(mapping_scenario, zone[:1], None, 30.0))
+    assert "estimate_withdrawn" not in _types(mapper) and published == []
+    now[0] = 31.0
+    mapper.ingest(_reports_at(mapping_scenario, zone[1:], None, 31.0))
+    withdrawn = [e for e in mapper.events if e["type"] == "estimate_withdrawn"]
+    assert len(withdrawn) == 1
+    event = withdrawn[0]
+    needed = math.ceil(online.withdrawal_threshold / one_report_nats)
+    assert needed <= event["reports"] <= len(zone)
+    assert event["evidence_nats"] >= online.withdrawal_threshold
+    assert event["t"] == 31.0 and event["evidence_since"] == 30.0
+    assert (event["x"], event["y"], event["power_w"]) == (setting.x, setting.y, setting.power_w)
+    assert event["withdrawn_version"] == 5 and event["version"] == 6
+    assert [(p.version, p.estimate, p.provisional) for p in published] == [(6, None, False)]
+    announced = [e for e in mapper.events if e["type"] == "sinr_weights_published"]
+    assert [(e["version"], e["t"], e["provisional"]) for e in announced] == [(6, 31.0, False)]
+    assert published[0].data == to_bytes(survey)
+    assert mapper.current_network() is survey and mapper.estimate is None
+    assert mapper.state()["phase"] == "watching" and mapper.state()["estimate"] is None
+
+
+def test_a_still_jammers_estimate_is_not_withdrawn_by_reports_consistent_with_it(
+        mapping_scenario, no_jammer_map):
+    """The jammer stands where the map says: the same places report its lowered levels, and
+    the map stays, however many such reports come in."""
+    survey, accuracy = no_jammer_map
+    setting = TABLE_I_JAMMERS[0]
+    mapper, now, published = _corrected_mapper(mapping_scenario, survey, accuracy,
+                                               _believed(setting))
+    zone = _jammed_zone(mapping_scenario, setting, 40)
+    for second in range(30, 40):
+        now[0] = float(second)
+        mapper.ingest(_reports_at(mapping_scenario, zone, setting, now[0]))
+    assert "estimate_withdrawn" not in _types(mapper) and published == []
+    assert mapper.version == 5 and mapper.estimate == _believed(setting)
+
+
+def test_after_a_withdrawal_the_detector_watches_the_survey_map(mapping_scenario,
+                                                                no_jammer_map):
+    """Withdrawn, the estimate no longer vouches for reports: the jammer switched on again
+    where it stood contradicts the survey map, and that is a change."""
+    survey, accuracy = no_jammer_map
+    setting = TABLE_I_JAMMERS[0]
+    mapper, now, _ = _corrected_mapper(mapping_scenario, survey, accuracy, _believed(setting))
+    zone = _jammed_zone(mapping_scenario, setting, 40)
+    now[0] = 30.0
+    mapper.ingest(_reports_at(mapping_scenario, zone, None, 30.0))
+    assert _types(mapper) == ["estimate_withdrawn", "sinr_weights_published"]
+    now[0] = 40.0
+    mapper.ingest(_reports_at(mapping_scenario, zone, setting, 40.0))
+    assert _types(mapper)[:3] == ["estimate_withdrawn", "sinr_weights_published",
+                                  "change_detected"]
+
+
+@pytest.mark.parametrize("stays", [False, True], ids=["blip", "still"])
+def test_a_jammer_seen_only_before_its_detection_is_never_served(mapping_scenario,
+                                                                 no_jammer_map, stays):
+    """A jammer on for one second raises a change, and is off when the next reports cross
+    its zone: no map corrected for it goes out. One that stays is confirmed by those reports,
+    and its corrected map goes out."""
+    survey, accuracy = no_jammer_map
+    setting = TABLE_I_JAMMERS[0]
+    published = []
+    mapper, now = _online(mapping_scenario, survey, accuracy, background=False,
+                          publish=published.append)
+    zone = _jammed_zone(mapping_scenario, setting, 40)
+    now[0] = 30.0
+    mapper.ingest(_reports_at(mapping_scenario, zone, setting, 30.0))
+    assert _types(mapper)[0] == "change_detected" and published == []
+    now[0] = 31.0
+    mapper.ingest(_reports_at(mapping_scenario, zone[::-1], setting if stays else None, 31.0))
+    if stays:
+        assert [p.estimate is not None or p.provisional for p in published] == [True]
+    else:
+        assert published == [] and mapper.current_network() is survey
+        assert "jammer_estimated" not in _types(mapper)
