@@ -15,7 +15,6 @@ import math
 import numpy as np
 
 from benchmarks.common import Figure
-from cloud_service.evaluation import random_jammer
 from cloud_service.online_map_sim import Fleet
 from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights, RetrainConfig
 from cloud_service.sinr_memory import SinrMemory
@@ -24,6 +23,7 @@ from shared.networks import load_network
 from shared.paper import TABLE_I_JAMMERS, JammerSetting, jammer_params
 from shared.scenario import Scenario, load_scenario
 from shared.shipped import sinr_map_for
+from world_sim.jammers import random_jammer
 
 SCENARIOS = ("icc2021", "icc2021-shadowed")
 UAVS = 4

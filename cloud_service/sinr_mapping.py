@@ -599,7 +599,8 @@ class OnlineSinrMapper:
             "reports": check.reports})
         if published is not None:
             self.events.append({"type": "sinr_weights_published", "t": self.clock(),
-                                "version": self._version, "accuracy": self._base_accuracy,
+                                "version": self._version, "sha256": published.sha256,
+                                "accuracy": self._base_accuracy,
                                 "samples": 0, "train_seconds": 0.0, "provisional": False})
         return published
 
