@@ -11,7 +11,6 @@ time, so every figure is seconds of flight after the change, the same on any mac
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 
 import numpy as np
@@ -24,6 +23,7 @@ from cloud_service.jammer_estimation import (
     report_shares,
 )
 from cloud_service.online_map_sim import Fleet
+from cloud_service.rounds import delay_rounds
 from cloud_service.sinr_mapping import ChangeDetector, OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
 from shared.measurements import (
@@ -121,7 +121,7 @@ def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
     shift_db = 0.0
     # Maps by the flight after the change from which they are in service: the one in service
     # at the change, then each published after it, the cloud's latency later.
-    delay_s = math.ceil(scenario.online_map.cloud_latency_s / dt - 1e-9) * dt
+    delay_s = delay_rounds(scenario.online_map.cloud_latency_s, dt) * dt
     in_service: list[tuple[float, SinrMapNetwork]] = []
     for step in range(int((WARM_UP_S + AFTER_S) / dt)):
         now[0] = step * dt

@@ -13,7 +13,6 @@ every so many episodes, the resilience evaluation.
 
 from __future__ import annotations
 
-import math
 import tempfile
 from collections import deque
 from collections.abc import Callable
@@ -31,6 +30,7 @@ from cloud_service.rollout import (
     perfect_maps,
     run_episodes,
 )
+from cloud_service.rounds import delay_rounds
 from cloud_service.sinr_mapping import OnlineSinrMapper, RetrainConfig
 from cloud_service.sinr_memory import SinrMemory
 from planning import lookahead_policy
@@ -89,8 +89,8 @@ class OnlineMaps:
         )
         # A map the cloud publishes after the upload of step t flies from step t + delay on:
         # the cloud's time to compute it and the UAVs' to receive it, in flight.
-        self.delay_steps = math.ceil(
-            scenario.online_map.cloud_latency_s / scenario.timing.step_s - 1e-9)
+        self.delay_steps = delay_rounds(scenario.online_map.cloud_latency_s,
+                                        scenario.timing.step_s)
         self.steps_flown = 0
         self._published: deque[tuple[int, int, SinrMapNetwork]] = deque()
         self.served_version, self._served = self.mapper.version, network

@@ -26,7 +26,8 @@ OPEN_WAIT_S = 2.0
 
 
 def delay_rounds(latency_s: float, step_s: float) -> int:
-    """Rounds between a map's publication and its first decisions (one in-process rule)."""
+    """Steps (rounds) between a map's publication and its first decisions: the one rule of
+    the bus, ``jamnav eval`` and the benchmarks (a hair under a whole step is that step)."""
     return math.ceil(latency_s / step_s - 1e-9)
 
 

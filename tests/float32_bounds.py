@@ -44,13 +44,17 @@ class Bounded:
     bound: np.ndarray
 
 
-def last_layer(network: Network, inputs: np.ndarray) -> Bounded:
-    """The last linear layer's outputs (..., units) for float32 inputs (..., input_size)."""
+def last_layer(network: Network, inputs: np.ndarray,
+               input_error: np.ndarray | float = 0.0) -> Bounded:
+    """The last linear layer's outputs (..., units) for float32 inputs (..., input_size), each
+    input read off by up to ``input_error`` (a forward that computed its inputs itself)."""
     tensors = {name: t.astype(np.float64) for name, t in network.tensors.items()}
     widths = layer_widths(network.architecture())
     standardized = (inputs.astype(np.float64) - tensors["standardize.mean"]) \
         / tensors["standardize.std"]
-    activation, error = standardized, gamma(2) * np.abs(standardized)  # a subtract, a divide
+    off = input_error / tensors["standardize.std"]
+    # The inputs' error passes the standardization scaled; its subtract and divide round.
+    activation, error = standardized, off + gamma(2) * (np.abs(standardized) + off)
     for layer, fan_in in enumerate(widths[:-1]):
         weight = tensors[f"body.{2 * layer}.weight"].T
         bias = tensors[f"body.{2 * layer}.bias"]
@@ -64,10 +68,11 @@ def last_layer(network: Network, inputs: np.ndarray) -> Bounded:
     return Bounded(outputs, error)
 
 
-def values(network: ValueNetwork, states: np.ndarray) -> Bounded:
+def values(network: ValueNetwork, states: np.ndarray,
+           state_error: np.ndarray | float = 0.0) -> Bounded:
     """The value network's outputs, scale * tanh(last layer): tanh is 1-Lipschitz, and it and
-    the scaling round once more."""
-    logit = last_layer(network, states)
+    the scaling round once more. ``state_error``: as ``last_layer``'s ``input_error``."""
+    logit = last_layer(network, states, state_error)
     squashed = np.tanh(logit.exact[..., 0])
     error = logit.bound[..., 0] + (TRANSCENDENTAL_ERROR + UNIT_ROUNDOFF) * (np.abs(squashed)
                                                                             + logit.bound[..., 0])

@@ -33,51 +33,32 @@ from shared.networks import ValueNetwork, load_network
 from shared.paper import TABLE_I_JAMMERS, jammer_params
 from shared.policy import LookaheadPolicy, RasterMap
 from shared.shipped import EXTENDED_CROWD_VALUE_NET, EXTENDED_VALUE_NET, VALUE_NET
+from tests import float32_bounds as bounds
 from tests.test_policy import untrained
 from world_sim.core import VectorWorld, episode_seed
 
 ROOT = Path(__file__).resolve().parent.parent
 
-# The error bound of the value network's float32 forward, either planner's against exact
-# arithmetic on the reference's float32 state x (Higham, Accuracy and Stability, Sec. 3.1):
-# - a feature is rounded once to float32 (u |x|, u = 2^-24) from float64 values that the two
-#   planners compute in up to 16 operations on quantities below 2^11 m, each off by half an
-#   ulp of 2^11 at most: FEATURE_SLACK; features both copy (a UAV's radius, top speed, level,
-#   steps below T_s, the constant zeros and an absent other's block) are the same exactly;
-# - standardization, a float32 subtraction and division: gamma_2 |h_0|;
-# - a dense layer with n inputs, in any order of summation, fused or not:
-#   |fl(W a + b) - (W a + b)| <= gamma_{n+1} (|W| |a| + |b|), gamma_n = n u / (1 - n u); an
-#   input error e passes as |W| e, and ReLU passes errors unchanged or less;
-# - tanhf within TANH_ULPS ulp of tanh (whose slope is at most 1), times the scale: one more u.
-# A score R + gamma V differs by gamma (or, searched deeper, gamma^2 <= gamma) times the two
-# planners' value errors, plus the float64 rounding of the rewards: REWARD_SLACK.
-U = 2.0**-24
+# Either planner's value of a state against exact arithmetic on the reference's float32 state
+# (tests/float32_bounds.py: the standardization, the dense layers in any order of summation,
+# tanh and the scale), with the planners' own features off by one float32 rounding (u |x|,
+# u = 2^-24) of float64 values computed in up to 16 operations on quantities below 2^11 m,
+# each off by half an ulp of 2^11 at most (FEATURE_SLACK); the features both copy (a UAV's
+# radius, top speed, level, steps below T_s, the constant zeros, an absent other's block) are
+# the same exactly. A score R + gamma V differs by gamma (or, searched deeper, gamma^2 <=
+# gamma) times the two planners' value errors, plus the float64 rounding of the rewards:
+# REWARD_SLACK.
 FEATURE_SLACK = 16 * 2.0**-42
-TANH_ULPS = 4
 REWARD_SLACK = 1e-12
-
-
-def gamma_n(n: int) -> float:
-    return n * U / (1 - n * U)
 
 
 def value_error_bound(network: ValueNetwork, states: np.ndarray) -> np.ndarray:
     """The most either planner's value of each of ``states`` (K, F) can differ from exact
     (K,), the reference's float32 states standing in for the exact features."""
-    mean, std, layers = network.layers()
-    x = states.astype(np.float64)
-    h = (x - mean) / std  # the exact forward, layer by layer
     rounded = np.where(computed_features(network, states),
-                       (U * np.abs(x) + FEATURE_SLACK) / std, 0.0)
-    error = rounded + gamma_n(2) * (np.abs(h) + rounded)
-    for index, (weight, bias) in enumerate(layers):
-        weight, bias = weight.astype(np.float64), bias.astype(np.float64)
-        z = h @ weight.T + bias
-        error = error @ np.abs(weight.T) + gamma_n(weight.shape[1] + 1) * (
-            (np.abs(h) + error) @ np.abs(weight.T) + np.abs(bias))
-        h = np.maximum(z, 0.0) if index < len(layers) - 1 else z
-    t = np.abs(np.tanh(h[:, 0]))
-    return network.value_scale * (error[:, 0] + 2 * TANH_ULPS * U * t + U * t)
+                       bounds.UNIT_ROUNDOFF * np.abs(states.astype(np.float64))
+                       + FEATURE_SLACK, 0.0)
+    return bounds.values(network, states, rounded).bound
 
 
 def computed_features(network: ValueNetwork, states: np.ndarray) -> np.ndarray:
