@@ -232,11 +232,19 @@ class AgentService:
                           self._on_observation, self.dropped),
             bus.subscribe(session, topics.value_weights, ValueWeights, self.updates.put,
                           self.dropped, lambda why: self.updates.put(("value", None, why))),
-            bus.subscribe(session, topics.sinr_map, SinrMap, self.updates.put, self.dropped,
+            bus.subscribe(session, topics.sinr_map, SinrMap, self._on_sinr_map, self.dropped,
                           lambda why: self.updates.put(("sinr_map", None, why))),
             bus.serve_status(session, topics, ROLE, uav, self.status),
         ]
         self.token = None
+        # The newest SINR map version received: one the world names beyond it was never
+        # published (the cloud publishes a map before the world can name it).
+        self.heard_sinr = -1
+        self.unknown_version_told = False
+
+    def _on_sinr_map(self, update: SinrMap) -> None:
+        self.heard_sinr = max(self.heard_sinr, update.version)
+        self.updates.put(update)
 
     def _on_observation(self, observation: AgentObservation | MeasurementRound) -> None:
         self.observations.put((time.perf_counter(), observation))
@@ -371,13 +379,17 @@ class AgentService:
             version=version, reason=reason[:500], flying_on=flying_on))
 
     def _fly_version(self, version: int) -> None:
-        """Fly the map version the world names, once built (it was published before the
-        world named it); the newest held if it does not come in MAP_WAIT_S."""
+        """Fly the map version the world names, once built: it was published before the
+        world named it, so it has arrived and is being built, or it never will (a forgery, a
+        version refused). Then, or after MAP_WAIT_S, the agent flies on with what it has."""
         deadline = time.monotonic() + MAP_WAIT_S
         while not self.models.fly_version(version):
-            if time.monotonic() > deadline:
-                self.log.warning("SINR map version %d never came; flying version %s",
-                                 version, self.models.sinr_version)
+            if version > self.heard_sinr or time.monotonic() > deadline:
+                if not self.unknown_version_told:
+                    self.unknown_version_told = True
+                    self.log.warning("SINR map version %d is not to be had; flying version %s "
+                                     "(further ones are not logged)", version,
+                                     self.models.sinr_version)
                 return
             time.sleep(0.002)
             self._take_updates()
