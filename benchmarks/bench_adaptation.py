@@ -26,14 +26,8 @@ from cloud_service.online_map_sim import Fleet
 from cloud_service.rounds import delay_rounds
 from cloud_service.sinr_mapping import ChangeDetector, OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
-from shared.measurements import (
-    MeasurementBatch,
-    MeasurementSpec,
-    predict_levels,
-    predict_probabilities,
-    scenario_features,
-)
-from shared.networks import SinrMapNetwork, load_network
+from planning.networks import SinrMapNetwork, load_network, predict_levels, predict_probabilities
+from shared.measurements import MeasurementBatch, MeasurementSpec, scenario_features
 from shared.paper import JammerSetting, jammer_params
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario

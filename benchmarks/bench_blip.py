@@ -18,8 +18,8 @@ from benchmarks.common import Figure
 from cloud_service.online_map_sim import Fleet
 from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights, RetrainConfig
 from cloud_service.sinr_memory import SinrMemory
+from planning.networks import load_network
 from shared.measurements import MeasurementSpec
-from shared.networks import load_network
 from shared.paper import TABLE_I_JAMMERS, JammerSetting, jammer_params
 from shared.scenario import Scenario, load_scenario
 from shared.shipped import sinr_map_for

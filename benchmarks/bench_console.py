@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 from benchmarks.common import Figure
+from planning.networks import sha256
 from shared import bus
 from shared.messages import (
     JammerInfo,
@@ -32,7 +33,6 @@ from shared.messages import (
     WorldState,
     encode,
 )
-from shared.networks import sha256
 from shared.shipped import SINR_MAP_NO_JAMMER
 from shared.topics import Topics
 from tests import browser as chromium

@@ -35,15 +35,10 @@ from cloud_service.rollout import (
     perfect_maps,
     run_episodes,
 )
-from shared.measurements import (
-    MeasurementBatch,
-    predict_levels,
-    predict_probabilities,
-    scenario_features,
-)
-from shared.networks import load_network
+from planning.maps import MAP_SPACING_M, LevelRaster, RasterMap
+from planning.networks import load_network, predict_levels, predict_probabilities
+from shared.measurements import MeasurementBatch, scenario_features
 from shared.paper import JammerSetting, jammer_params
-from shared.policy import MAP_SPACING_M, LevelRaster, RasterMap
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
 from shared.shipped import sinr_map_for, value_net_for

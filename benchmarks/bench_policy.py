@@ -19,11 +19,12 @@ import numpy as np
 from benchmarks.common import Figure, best_rate
 from cloud_service.rollout import LookaheadController, RasterMaps, fleet_observation, perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
+from planning.features import joint_state_size
 from planning.lookahead import CompiledLookahead
-from shared.features import joint_state_size
-from shared.networks import load_network
+from planning.maps import MAP_SPACING_M, LevelRaster, TrueMap
+from planning.networks import load_network
+from planning.reference import LookaheadPolicy
 from shared.paper import TABLE_I_JAMMERS, jammer_params
-from shared.policy import MAP_SPACING_M, LevelRaster, LookaheadPolicy, TrueMap
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
 from shared.shipped import EXTENDED_VALUE_NET

@@ -17,8 +17,8 @@ from cloud_service.rollout import (
     perfect_maps,
     run_episodes,
 )
+from planning.maps import LevelRaster
 from shared.paper import JammerSetting, jammer_params
-from shared.policy import LevelRaster
 from shared.scenario import Scenario, load_scenario
 from shared.shipped import EXTENDED_VALUE_NET
 from world_sim.core import VectorWorld, episode_seed

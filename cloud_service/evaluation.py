@@ -34,16 +34,17 @@ from cloud_service.rounds import delay_rounds
 from cloud_service.sinr_mapping import OnlineSinrMapper, RetrainConfig
 from cloud_service.sinr_memory import SinrMemory
 from planning import lookahead_policy
+from planning.maps import RasterMap, sinr_network_raster
+from planning.networks import SinrMapNetwork, WeightsError, load_network
+from planning.reference import LookaheadPolicy
 from shared.measurements import (
     MeasurementBatch,
     MeasurementSpec,
     SpotFilter,
     scenario_features,
 )
-from shared.networks import SinrMapNetwork, WeightsError, load_network
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting
-from shared.policy import LookaheadPolicy, RasterMap, sinr_network_raster
 from shared.scenario import MAX_UAVS, Scenario
 from shared.shipped import NoSurveyMapError, sinr_map_for, value_net_for
 from world_sim.core import VectorWorld

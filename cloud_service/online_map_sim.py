@@ -26,14 +26,8 @@ from cloud_service.sinr_mapping import (
     labelled_batch,
 )
 from cloud_service.sinr_memory import SinrMemory
-from shared.measurements import (
-    MeasurementBatch,
-    MeasurementSpec,
-    SpotFilter,
-    predict_levels,
-    scenario_features,
-)
-from shared.networks import SinrMapNetwork
+from planning.networks import SinrMapNetwork, predict_levels
+from shared.measurements import MeasurementBatch, MeasurementSpec, SpotFilter, scenario_features
 from shared.paper import TABLE_I_JAMMERS, JammerSetting, jammer_params
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario

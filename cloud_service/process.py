@@ -35,6 +35,7 @@ from cloud_service.rollout import RasterMaps
 from cloud_service.rounds import RoundDesk, delay_rounds
 from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights, RetrainConfig
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
+from planning.networks import SinrMapNetwork, WeightsError, load_network, sha256
 from shared import access, bus
 from shared.measurements import MeasurementBatch, MeasurementSpec
 from shared.messages import (
@@ -58,7 +59,6 @@ from shared.messages import (
     describe_estimate,
     encode,
 )
-from shared.networks import SinrMapNetwork, WeightsError, load_network, sha256
 from shared.radio import RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario
 from shared.shipped import (

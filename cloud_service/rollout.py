@@ -15,18 +15,13 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-from shared.features import Observation, decision_reach
+from planning.maps import MAP_SPACING_M, LevelRaster, RadioMap, RasterMap
+from planning.orca import orca_velocities, preferred_velocity_toward
+from planning.reference import LookaheadPolicy
 from shared.neighbours import nearby_others
-from shared.orca import orca_velocities, preferred_velocity_toward
+from shared.observation import Observation, decision_reach
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting, jammer_params
-from shared.policy import (
-    MAP_SPACING_M,
-    LevelRaster,
-    LookaheadPolicy,
-    RadioMap,
-    RasterMap,
-)
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 from world_sim.core import StepResult, VectorWorld, episode_seed

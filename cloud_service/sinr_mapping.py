@@ -46,13 +46,9 @@ from cloud_service.jammer_estimation import (
     sigma_fit_sample,
 )
 from cloud_service.sinr_memory import SinrMemory, Uploads
-from shared.measurements import (
-    MeasurementBatch,
-    predict_probabilities,
-    scenario_features,
-)
-from shared.networks import SinrMapNetwork, sha256, to_bytes
-from shared.policy import MAP_SPACING_M, LevelRaster, sinr_network_raster
+from planning.maps import MAP_SPACING_M, LevelRaster, sinr_network_raster
+from planning.networks import SinrMapNetwork, predict_probabilities, sha256, to_bytes
+from shared.measurements import MeasurementBatch, scenario_features
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 

@@ -19,8 +19,7 @@ from cloud_service.sinr_mapping import (
     uniform_positions,
 )
 from cloud_service.torch_networks import TorchSinrMapNetwork
-from shared.measurements import accuracy_of, predict_levels
-from shared.networks import SinrMapNetwork
+from planning.networks import SinrMapNetwork, accuracy_of, predict_levels
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 from shared.shipped import survey_world_digest

@@ -1,6 +1,6 @@
 """The two networks as torch modules: the form they are trained in.
 
-Their layers, tensor names and shapes are those of ``shared.networks``, whose numpy forward
+Their layers, tensor names and shapes are those of ``planning.networks``, whose numpy forward
 runs every decision and map; ``inference()`` gives a module in that form. On the CPU it reads
 the module's own memory and so follows every in-place training step; on another device it is
 a copy of the moment.
@@ -14,7 +14,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from shared.networks import (
+from planning.networks import (
     Network,
     build_network,
     layer_widths,

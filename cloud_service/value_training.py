@@ -53,8 +53,8 @@ from cloud_service.rollout import (
 )
 from cloud_service.torch_networks import TorchValueNetwork
 from planning import lookahead_policy
-from shared.features import METHODS, MethodOptions, joint_state_size, observation_state
-from shared.networks import (
+from planning.features import METHODS, MethodOptions, joint_state_size, observation_state
+from planning.networks import (
     ValueNetwork,
     WeightsError,
     card_path,
@@ -63,9 +63,9 @@ from shared.networks import (
     sha256,
     to_bytes,
 )
+from planning.reference import PUBLISHED_LOOKAHEAD
 from shared.outcomes import Outcome
 from shared.paper import TABLE_I_JAMMERS
-from shared.policy import PUBLISHED_LOOKAHEAD
 from shared.radio import JammerParams
 from shared.resources import resident_mib
 from shared.scenario import Scenario
@@ -86,7 +86,7 @@ class TrainConfig:
     uavs: int | None = None
     seed: int = 0
     device: str = "cpu"
-    method: str = "paper"  # a key of shared.features.METHODS
+    method: str = "paper"  # a key of planning.features.METHODS
     threads: int = 1  # torch threads: on 2 cores one thread beats two fighting the world
     batch_size: int = 200  # paper
     learning_rate: float = 1e-3  # paper

@@ -85,8 +85,8 @@ def check_fleet(option: str, uavs: int, scenario, seed: int = 0) -> None:
 def sinr_map_argument(option: str, path: str, scenario):
     """(network, card) of a SINR map given on the command line for ``scenario``: refused in
     one line unless it is a SINR-mapping network of the scenario's features and levels."""
+    from planning.networks import WeightsError, load_network
     from shared.measurements import MeasurementSpec
-    from shared.networks import WeightsError, load_network
 
     spec = MeasurementSpec.of(scenario)
     try:

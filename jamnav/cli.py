@@ -223,7 +223,8 @@ def cmd_sinr(args: argparse.Namespace) -> int:
 def _sinr_from_model(args: argparse.Namespace) -> int:
     """Levels predicted by a SINR-map network, in the shape of the true-map query; the
     network predicts levels only, so sinr_db and serving_gbs are null."""
-    from shared.measurements import predict_levels, scenario_features
+    from planning.networks import predict_levels
+    from shared.measurements import scenario_features
 
     if args.jammer or args.no_jammer:
         raise UsageError("--model: the network is the map of the jammer it was trained for; "
@@ -498,7 +499,7 @@ def cmd_fit_sinr(args: argparse.Namespace) -> int:
     from cloud_service.sinr_training import fit_sinr_map
     from cloud_service.value_training import git_commit
     from jamnav.progress import ProgressBar
-    from shared.networks import save_network
+    from planning.networks import save_network
 
     _one_torch_thread()
     scenario = scenario_with_jammer(args)

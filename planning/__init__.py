@@ -1,18 +1,25 @@
-"""The lookahead planner every UAV flies: the compiled core (``planning.lookahead``) by
-default, or the numpy planner of ``shared.policy``, its reference, with
-``JAMNAV_PLANNER=reference`` in the environment of any command.
+"""How a UAV plans: the lookahead every UAV flies and all it reads.
 
-Agents, evaluation and training build their policy here; ``shared`` never imports this
-package."""
+The lookahead runs as the compiled core (``planning.lookahead``) by default, or as the numpy
+lookahead of ``planning.reference``, its reference, with ``JAMNAV_PLANNER=reference`` in the
+environment of any command. Both read the radio maps of ``planning.maps`` (with the route
+distance of ``planning.routes``), the joint state of ``planning.features`` and the networks of
+``planning.networks`` (their safetensors form and numpy forward, the SINR map's too); the
+reciprocal prediction of the others solves ORCA (``planning.orca``).
+
+Agents, evaluation and training build their policy here (``lookahead_policy``). This package
+imports ``shared``; ``shared`` and the world (``world_sim``) never import it."""
 
 from __future__ import annotations
 
 import os
 from typing import TYPE_CHECKING
 
+import shared  # noqa: F401  (pins the BLAS threads before numpy loads)
+
 if TYPE_CHECKING:  # the command line imports this package for PlannerError alone
-    from shared.networks import ValueNetwork
-    from shared.policy import LookaheadPolicy
+    from planning.networks import ValueNetwork
+    from planning.reference import LookaheadPolicy
     from shared.scenario import Scenario
 
 PLANNER_VARIABLE = "JAMNAV_PLANNER"
@@ -34,7 +41,7 @@ def require_planner() -> type[LookaheadPolicy]:
     """The class of the planner ``JAMNAV_PLANNER`` names: a process checks it as it starts,
     so that a missing or stale compiled core stops it at once, in one line."""
     if chosen_planner() == "reference":
-        from shared.policy import LookaheadPolicy  # noqa: PLC0415
+        from planning.reference import LookaheadPolicy  # noqa: PLC0415
 
         return LookaheadPolicy
     from planning.lookahead import CompiledLookahead  # noqa: PLC0415 (raises PlannerError)
@@ -44,5 +51,5 @@ def require_planner() -> type[LookaheadPolicy]:
 
 def lookahead_policy(scenario: Scenario, value_net: ValueNetwork, **options) -> LookaheadPolicy:
     """The lookahead with ``value_net``, by the planner ``JAMNAV_PLANNER`` names; ``options``
-    as ``shared.policy.LookaheadPolicy`` takes them."""
+    as ``planning.reference.LookaheadPolicy`` takes them."""
     return require_planner()(scenario, value_net, **options)

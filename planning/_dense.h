@@ -23,7 +23,7 @@
 typedef float dense_lanes __attribute__((vector_size(DENSE_BLOCK * sizeof(float)), aligned(4)));
 
 /* The network's standardization of DENSE_BLOCK states read feature-major (feature i of
- * state s at states[i * stride + s]), in float32 as shared.networks computes it. */
+ * state s at states[i * stride + s]), in float32 as planning.networks computes it. */
 DENSE_CLONES
 static void dense_standardize(const float *restrict states, long stride, int features,
                               const float *restrict mean, const float *restrict std,

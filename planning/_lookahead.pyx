@@ -1,9 +1,9 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True
 # cython: initializedcheck=False
-"""The lookahead of ``shared.policy.LookaheadPolicy`` for one UAV at a time, compiled: its
+"""The lookahead of ``planning.reference.LookaheadPolicy`` for one UAV at a time, compiled: its
 nearest others, candidate moves, the others' predicted motion (constant velocity or
 reciprocal), gaps and rewards, safe cells, joint-state features, the value network's forward
-(float32), the risk and escape checks and the deeper search. ``shared.policy`` is the
+(float32), the risk and escape checks and the deeper search. ``planning.reference`` is the
 reference: every step here follows its arithmetic, in the same order where it can.
 
 A row's decision reads no Python object: the maps come as plain arrays (a level raster per
@@ -47,7 +47,7 @@ cdef enum:
     MAX_DEPTH = 3  # shared.scenario bounds lookahead_depth so
     MAX_TURNS = 64  # distinct heading changes: shared.scenario's 63 heading choices and hovering
 
-# How the others' next velocity is predicted (shared.policy.LookaheadPolicy.others_velocity).
+# How the others' next velocity is predicted (planning.reference.LookaheadPolicy.others_velocity).
 cdef enum OthersModel:
     CONSTANT_VELOCITY = 0
     RECIPROCAL = 1
@@ -150,7 +150,7 @@ cdef inline int64_t level_at(const MapView *m, double x, double y) nogil:
 
 
 cdef inline double route_distance(MapView *m, double x, double y) nogil:
-    # shared.routes.RouteGrid._read, then the offset RouteGrid.distance adds.
+    # planning.routes.RouteGrid._read, then the offset RouteGrid.distance adds.
     cdef double fx = clamp((x - m.field_x0) / m.cell, 0, m.field_cols - 1)
     cdef double fy = clamp((y - m.field_y0) / m.cell, 0, m.field_rows - 1)
     # fx and fy are clamped to 0 or more: truncation is their floor, without a call to libm.
@@ -192,8 +192,8 @@ cdef class Kernel:
 
     def __init__(self, settings, tensors):
         """``settings``: a mapping of the lookahead's settings (planning.lookahead builds it
-        from a shared.policy.LookaheadPolicy); ``tensors``: (mean, std, [(weight, bias)])
-        as shared.networks.Network.layers gives them, float32 and C-contiguous."""
+        from a planning.reference.LookaheadPolicy); ``tensors``: (mean, std, [(weight, bias)])
+        as planning.networks.Network.layers gives them, float32 and C-contiguous."""
         self.actions = len(settings["speeds"])
         self.speeds = settings["speeds"]
         self.turns = settings["distinct_turns"]
@@ -269,7 +269,7 @@ cdef class Kernel:
                int64_t[::1] action, double[::1] speed, double[::1] new_heading,
                double[::1] value, double[:, ::1] score, uint8_t[:, ::1] allowed,
                uint8_t[::1] route_missing):
-        """Decide every row (one UAV each, as shared.policy's Observation holds them) into
+        """Decide every row (one UAV each, as shared.observation.Observation holds them) into
         ``action``, ``speed``, ``new_heading`` and ``value`` (N,), ``score`` and ``allowed``
         (N, A); ``route_missing`` marks the rows that read a route field beyond where it is
         computed (their decision must be taken again on the whole field)."""
@@ -431,8 +431,8 @@ cdef inline double proximity(Kernel k, double gap) noexcept nogil:
 
 cdef void reciprocal_velocity(Kernel k, const Scene *s, int o, double *vx,
                               double *vy) noexcept nogil:
-    # shared.orca.orca_velocities for the two-agent world of the observer and the other: the
-    # other's half-plane of ORCA^tau (shared.orca._half_planes), then its velocity closest to
+    # planning.orca.orca_velocities for the two-agent world of the observer and the other: the
+    # other's half-plane of ORCA^tau (planning.orca._half_planes), then its velocity closest to
     # its own inside that half-plane and its speed disc (the one-constraint programs of
     # _linear_program_2d and, when the half-plane misses the disc, _linear_program_3d).
     cdef double px = s.x - s.ox[o], py = s.y - s.oy[o]  # the observer seen from the other
@@ -493,7 +493,7 @@ cdef void reciprocal_velocity(Kernel k, const Scene *s, int o, double *vx,
 
 
 cdef void predict_others(Kernel k, const Scene *s, Step *st) noexcept nogil:
-    # shared.policy.LookaheadPolicy.others_velocity: constant velocity, or a reciprocal ORCA
+    # planning.reference.LookaheadPolicy.others_velocity: constant velocity, or a reciprocal ORCA
     # agent's half of the avoidance for the others on collision course within the horizon.
     cdef int o
     for o in range(s.count):
@@ -507,7 +507,7 @@ cdef void predict_others(Kernel k, const Scene *s, Step *st) noexcept nogil:
 
 
 cdef void write_features(Kernel k, const Scene *s, Step *st, int a, MapView *m) noexcept nogil:
-    # shared.features.joint_state of action a's next state, in float64, rounded to float32.
+    # planning.features.joint_state of action a's next state, in float64, rounded to float32.
     cdef float *f = st.states + a
     cdef Py_ssize_t stride = st.stride
     cdef double x = st.x[a], y = st.y[a], vx = st.vx[a], vy = st.vy[a]
@@ -570,7 +570,7 @@ cdef void write_angles(Kernel k, const Scene *s, Step *st) noexcept nogil:
 
 
 cdef void expand(Kernel k, const Scene *s, MapView *m, Step *st) noexcept nogil:
-    # shared.policy.LookaheadPolicy.expand (with _margins and _gaps) for one scene.
+    # planning.reference.LookaheadPolicy.expand (with _margins and _gaps) for one scene.
     cdef double margin[MAX_WATCHED]
     cdef uint8_t near[MAX_WATCHED]
     cdef double heading[MAX_TURNS]
@@ -632,7 +632,7 @@ cdef void expand(Kernel k, const Scene *s, MapView *m, Step *st) noexcept nogil:
 
 cdef void forward(Kernel k, Workspace w, const Step *st, Py_ssize_t n,
                   double *values) noexcept nogil:
-    # shared.networks.ValueNetwork: standardization, the layers, tanh times the scale.
+    # planning.networks.ValueNetwork: standardization, the layers, tanh times the scale.
     cdef Py_ssize_t start, count, s
     cdef int layer
     cdef float *inputs
@@ -665,7 +665,7 @@ cdef void leaf_scores(Kernel k, Workspace w, Step *st, double *score) noexcept n
 
 cdef void deep_scores(Kernel k, Workspace w, const Scene *s, MapView *m, int index, int depth,
                       const uint8_t *searched, double *score) noexcept nogil:
-    # shared.policy.LookaheadPolicy.deep_scores: w.steps[index] holds the expansion of s.
+    # planning.reference.LookaheadPolicy.deep_scores: w.steps[index] holds the expansion of s.
     cdef Step *st = &w.steps[index]
     if depth == 1:
         leaf_scores(k, w, st, score)
@@ -693,7 +693,7 @@ cdef void deep_scores(Kernel k, Workspace w, const Scene *s, MapView *m, int ind
 
 
 cdef bint escapes(Kernel k, Step *st, int a, MapView *m) noexcept nogil:
-    # shared.policy.LookaheadPolicy.escapes for action a: after it, some next move lands on a
+    # planning.reference.LookaheadPolicy.escapes for action a: after it, some next move lands on a
     # connected level (or it ends the mission, or lands on one itself).
     if st.terminal[a] or st.level[a] >= k.weak:
         return True
@@ -742,7 +742,7 @@ cdef int argmax(Kernel k, const double *score) noexcept nogil:
 
 cdef void safe_cells(Kernel k, const Scene *s, Step *st, const double *position,
                      const uint8_t *present, Py_ssize_t others, uint8_t *allowed) noexcept nogil:
-    # shared.policy.inside_safe_cells with every other in sight.
+    # planning.reference.inside_safe_cells with every other in sight.
     cdef int a
     cdef Py_ssize_t o
     cdef double mx, my, tx, ty, distance, unit
@@ -766,7 +766,7 @@ cdef void safe_cells(Kernel k, const Scene *s, Step *st, const double *position,
 cdef int64_t decide_row(Kernel k, Workspace w, Scene *s, MapView *m, const double *position,
                         const uint8_t *present, Py_ssize_t others, double *score,
                         uint8_t *allowed) noexcept nogil:
-    # shared.policy.LookaheadPolicy.scored (with deepened and first_moves), then the argmax.
+    # planning.reference.LookaheadPolicy.scored (with deepened and first_moves), then the argmax.
     cdef Step *st = &w.steps[0]
     cdef int a
     expand(k, s, m, st)

@@ -1,9 +1,9 @@
-"""The compiled lookahead: ``shared.policy.LookaheadPolicy``'s decisions, each UAV's taken
+"""The compiled lookahead: ``planning.reference.LookaheadPolicy``'s decisions, each UAV's taken
 whole by the compiled core (``planning._lookahead``) from plain arrays.
 
 The settings, the checks on the value network and every other method stay those of the
 reference, which this class extends; only ``decide`` (and ``decide_scored``) run compiled.
-The maps it reads are raster maps (``shared.policy.RasterMap``), as agents, evaluation and
+The maps it reads are raster maps (``planning.maps.RasterMap``), as agents, evaluation and
 training fly."""
 
 from __future__ import annotations
@@ -14,21 +14,21 @@ from typing import NamedTuple
 import numpy as np
 
 from planning import PlannerError
-from planning.source_digest import source_digest
-from shared.features import ABSENT_DISTANCE, CELL_CLEARANCE_M, Observation, joint_state_size
-from shared.kinematics import wrap_angle
-from shared.networks import ValueNetwork
-from shared.policy import (
+from planning.features import ABSENT_DISTANCE, joint_state_size
+from planning.maps import RasterMap, RouteFields
+from planning.networks import ValueNetwork
+from planning.reference import (
     CLOSING_TOLERANCE_M,
     DEEP_SEARCH_BEAM,
     GAP_SLACK_M,
     Decision,
     LookaheadPolicy,
-    RasterMap,
-    RouteFields,
     explored,
 )
-from shared.routes import REACH_FACTOR, REACH_MARGIN_M
+from planning.routes import REACH_FACTOR, REACH_MARGIN_M
+from planning.source_digest import source_digest
+from shared.kinematics import wrap_angle
+from shared.observation import CELL_CLEARANCE_M, Observation
 from shared.scenario import Scenario
 
 try:
@@ -103,7 +103,7 @@ class CompiledLookahead(LookaheadPolicy):
     def decide_scored(self, observation: Observation, radio_map: RasterMap) -> ScoredDecision:
         """The decision, with every action's score and which the safe cells allow."""
         if not isinstance(radio_map, RasterMap):
-            raise TypeError("the compiled planner reads raster maps (shared.policy.RasterMap), "
+            raise TypeError("the compiled planner reads raster maps (planning.maps.RasterMap), "
                             f"not {type(radio_map).__name__}")
         n, actions = len(observation), len(self.actions)
         out = (np.empty(n, dtype=np.int64), np.empty(n), np.empty(n), np.empty(n),

@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from shared.networks import SinrMapNetwork
 from shared.scenario import Scenario
 
 PER_GBS_FEATURES = ("dx", "dy", "distance", "elevation", "azimuth")
@@ -357,23 +356,3 @@ class SpotFilter:
             np.copyto(last_xy, here, where=keep)
         self.last_xy[uavs], self.last_level[uavs] = last_xy.T, levels[:, -1]
         return kept.T.copy()
-
-
-def predict_probabilities(network: SinrMapNetwork, features: np.ndarray) -> np.ndarray:
-    """Probability of each level (softmax of the logits) for features of shape (..., F):
-    shape (..., levels), float32."""
-    logits = network(features)
-    logits -= logits.max(axis=-1, keepdims=True)
-    np.exp(logits, out=logits)
-    logits /= logits.sum(axis=-1, keepdims=True)
-    return logits
-
-
-def predict_levels(network: SinrMapNetwork, features: np.ndarray) -> np.ndarray:
-    """Predicted level (the most probable) for features of shape (..., F)."""
-    return predict_probabilities(network, features).argmax(-1).astype(np.int64)
-
-
-def accuracy_of(network: SinrMapNetwork, features, levels) -> float:
-    predicted = predict_levels(network, features)
-    return float((predicted == np.asarray(levels)).mean())

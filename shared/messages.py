@@ -22,8 +22,8 @@ import msgpack
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
 
-from shared.features import Observation
 from shared.measurements import MEASUREMENT_FIELDS, Measurement
+from shared.observation import Observation
 from shared.outcomes import Outcome
 from shared.radio import JammerParams
 from shared.scenario import (
@@ -118,7 +118,7 @@ class AgentObservation(Message):
                next_destination: np.ndarray | None = None,
                sinr_version: int | None = None) -> AgentObservation:
         """Row ``row`` of ``observation``, with only the others the mask ``others`` (M,)
-        keeps (``shared.features.decision_relevant``), in their order; all without it."""
+        keeps (``shared.observation.decision_relevant``), in their order; all without it."""
         o = observation
         keep = slice(None) if others is None else others
         return cls.model_construct(

@@ -1,6 +1,6 @@
 """Which others a UAV must see, found with a k-d tree per fleet.
 
-Apart from ``shared.features`` because only the world and the in-process flights look for
+Apart from ``shared.observation`` because only the world and the in-process flights look for
 neighbours among many UAVs: an agent is sent its neighbours, and scipy.spatial would cost each
 agent process 7.5 MiB of memory for nothing.
 """

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.kinematics import clamp, closest_approach
+from shared.kinematics import clamp
 from shared.scenario import Scenario
 
 
@@ -50,29 +50,3 @@ class RewardModel:
             + np.where(arrived, self.arrival, 0.0)
             + self.step
         )
-
-
-def smallest_gaps(
-    own_position: np.ndarray,
-    own_velocity: np.ndarray,
-    own_radius: np.ndarray,
-    other_position: np.ndarray,
-    other_velocity: np.ndarray,
-    other_radius: np.ndarray,
-    other_present: np.ndarray,
-    duration: float,
-    margin: float | np.ndarray = 0.0,
-) -> np.ndarray:
-    """Smallest gap over one step between each UAV and the others it can see, less a safety
-    ``margin`` per other (broadcast against other_radius).
-
-    Shapes: own_* (..., 2) / (...); other_* (..., M, 2) / (..., M); returns (...). Absent
-    others (padding, finished UAVs) count as infinitely far.
-    """
-    distance = closest_approach(
-        other_position - own_position[..., None, :],
-        other_velocity - own_velocity[..., None, :],
-        duration,
-    )
-    gap = distance - own_radius[..., None] - other_radius - margin
-    return np.where(other_present, gap, np.inf).min(axis=-1, initial=np.inf)

@@ -217,10 +217,10 @@ class Policy(_Strict):
     orca_time_horizon_s: Positive
     route_cell_m: Positive
     route_uncovered_cost: Annotated[float, Field(ge=1, allow_inf_nan=False)]
-    # Steps the lookahead searches for a UAV at risk of disconnection (shared/policy.py): each
+    # Steps the lookahead searches for a UAV at risk of disconnection (planning/reference.py): each
     # step multiplies its cost by the action count, so more than 3 is out of reach.
     lookahead_depth: int = Field(default=1, ge=1, le=3)
-    # How the lookahead predicts the others' next move (shared/policy.py): at their observed
+    # How the lookahead predicts the others' next move (planning/reference.py): at their observed
     # velocity, or each taking its half of the avoidance as ORCA's reciprocal agents do.
     others_model: Literal["constant_velocity", "reciprocal"] = "constant_velocity"
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.networks import Network, ValueNetwork, layer_widths
+from planning.networks import Network, ValueNetwork, layer_widths
 
 UNIT_ROUNDOFF = 2.0**-24  # one float32 operation's relative error is at most this
 # float32 exp and tanh, numpy's SIMD kernels and torch's (SLEEF), stay within 4 units in the

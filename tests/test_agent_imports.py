@@ -17,7 +17,7 @@ FLY_ONCE = """
 import json, logging, sys
 import uav_agent.process
 from shared.messages import AgentObservation, SinrMap, ValueWeights
-from shared.networks import sha256
+from planning.networks import sha256
 from shared.scenario import load_scenario
 from shared.shipped import VALUE_NET, sinr_map_for
 

@@ -6,8 +6,8 @@ import logging
 
 import numpy as np
 
+from planning.networks import sha256
 from shared.messages import AgentObservation, SinrMap, ValueWeights
-from shared.networks import sha256
 from shared.shipped import EXTENDED_VALUE_NET, sinr_map_for
 from uav_agent.process import ROUTE_FIELDS_KEPT, Models
 

@@ -15,6 +15,8 @@ import torch
 
 from cloud_service.sinr_mapping import RetrainConfig
 from jamnav.cli import main as jamnav
+from planning.networks import load_network, save_bytes, sha256
+from planning.routes import RouteGrid
 from shared.messages import (
     AgentObservation,
     JammerCommand,
@@ -24,8 +26,6 @@ from shared.messages import (
     decode,
     encode,
 )
-from shared.networks import load_network, save_bytes, sha256
-from shared.routes import RouteGrid
 from shared.shipped import VALUE_NET
 from tests.support import running, wait_until
 

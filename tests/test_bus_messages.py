@@ -10,7 +10,6 @@ import msgpack
 import numpy as np
 import pytest
 
-from shared.features import Observation
 from shared.measurements import Measurement
 from shared.messages import (
     Action,
@@ -29,6 +28,7 @@ from shared.messages import (
     zenoh_cli_decoder,
     zenoh_cli_encoder,
 )
+from shared.observation import Observation
 from shared.topics import Topics
 from world_sim.core import VectorWorld, episode_seed
 

@@ -6,8 +6,8 @@ import pytest
 from cloud_service.evaluation import load_policy
 from cloud_service.jammer_estimation import positions_from_features
 from cloud_service.rollout import LookaheadController, fleet_observation, perfect_maps
-from shared.features import Observation
 from shared.measurements import scenario_features
+from shared.observation import Observation
 from shared.outcomes import Outcome
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario

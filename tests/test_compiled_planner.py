@@ -1,7 +1,7 @@
-"""The compiled planner (planning.lookahead) against its reference, shared.policy's numpy
-planner: the same action and, within float32's rounding, the same scores, on states recorded
-in flights of the shipped networks and on random states that exercise every part of the
-lookahead (reciprocal others, safe cells, the deeper search)."""
+"""The compiled planner (planning.lookahead) against its reference, the numpy planner of
+planning.reference: the same action and, within float32's rounding, the same scores, on states
+recorded in flights of the shipped networks and on random states that exercise every part of
+the lookahead (reciprocal others, safe cells, the deeper search)."""
 
 from __future__ import annotations
 
@@ -19,19 +19,20 @@ import torch
 from cloud_service.rollout import LookaheadController, fleet_observation, perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
 from planning import PLANNER_VARIABLE, PlannerError, lookahead_policy
-from planning.lookahead import CompiledLookahead
-from shared.features import (
+from planning.features import (
     ABSENT_DISTANCE,
     EXTENDED_METHOD,
     OTHER_FEATURES,
     OWN_FEATURES,
     MethodOptions,
-    Observation,
     joint_state_size,
 )
-from shared.networks import ValueNetwork, load_network
+from planning.lookahead import CompiledLookahead
+from planning.maps import RasterMap
+from planning.networks import ValueNetwork, load_network
+from planning.reference import LookaheadPolicy
+from shared.observation import Observation
 from shared.paper import TABLE_I_JAMMERS, jammer_params
-from shared.policy import LookaheadPolicy, RasterMap
 from shared.shipped import EXTENDED_CROWD_VALUE_NET, EXTENDED_VALUE_NET, VALUE_NET
 from tests import float32_bounds as bounds
 from tests.test_policy import untrained

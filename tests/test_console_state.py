@@ -16,6 +16,7 @@ from jamnav.cli import main as jamnav
 from jamnav.console import listen
 from jamnav.console.maps import CoverageMaps
 from jamnav.console.state import TIMELINE_IN_FRAME, ConsoleState, jammer_request
+from planning.networks import sha256
 from shared.messages import (
     ChangeDetected,
     JammerChanged,
@@ -29,7 +30,6 @@ from shared.messages import (
     decode,
     encode,
 )
-from shared.networks import sha256
 from shared.radio import RadioModel
 from shared.shipped import SINR_MAP_NO_JAMMER
 

@@ -6,13 +6,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from shared.features import (
-    OTHER_FEATURES,
-    OWN_FEATURES,
-    Observation,
-    joint_state_size,
-    observation_state,
-)
+from planning.features import OTHER_FEATURES, OWN_FEATURES, joint_state_size, observation_state
+from shared.observation import Observation
 
 
 def fleet(rng, uavs=5):

@@ -11,10 +11,11 @@ from hypothesis import strategies as st
 
 from jamnav.cli_runtime import _describe_agents
 from jamnav.supervisor import agents_line, fleet_line
-from shared.features import Observation, decision_reach, decision_relevant
+from planning.maps import MAP_SPACING_M, LevelRaster, RasterMap
+from planning.networks import load_network
+from planning.reference import LookaheadPolicy
 from shared.messages import AgentObservation, ProcessStatus, WorldState, decode, encode
-from shared.networks import load_network
-from shared.policy import MAP_SPACING_M, LevelRaster, LookaheadPolicy, RasterMap
+from shared.observation import Observation, decision_reach, decision_relevant
 from shared.radio import RadioModel
 from shared.shipped import VALUE_NETS
 from world_sim.core import VectorWorld, episode_seed

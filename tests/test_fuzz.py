@@ -21,6 +21,7 @@ import zenoh
 
 from cloud_service.process import CLOCK_SKEW_S
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
+from planning.networks import sha256
 from shared import bus
 from shared.measurements import Measurement, MeasurementSpec, scenario_features
 from shared.messages import (
@@ -41,7 +42,6 @@ from shared.messages import (
     decode_event,
     encode,
 )
-from shared.networks import sha256
 from shared.topics import Topics
 from tests.support import Drained, free_endpoint, gone, statuses, wait_until
 

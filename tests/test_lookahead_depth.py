@@ -5,9 +5,11 @@ import math
 import numpy as np
 import pytest
 
-from shared.features import EXTENDED_METHOD, MethodOptions, Observation, joint_state_size
-from shared.networks import ValueNetwork, value_architecture
-from shared.policy import MAP_SPACING_M, LevelRaster, LookaheadPolicy, RasterMap
+from planning.features import EXTENDED_METHOD, MethodOptions, joint_state_size
+from planning.maps import MAP_SPACING_M, LevelRaster, RasterMap
+from planning.networks import ValueNetwork, value_architecture
+from planning.reference import LookaheadPolicy
+from shared.observation import Observation
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import ScenarioError, load_scenario
 from tests.conftest import write_variant
@@ -118,8 +120,8 @@ def fleet_case():
     return scenario, network, fleet, jammed_raster_map(scenario, len(fleet))
 
 
-# The one-step lookahead's choices on fleet_case, recorded with shared/policy.py as of commit
-# 2abe04e (before the deeper search existed).
+# The one-step lookahead's choices on fleet_case, recorded with the numpy lookahead (then
+# shared/policy.py) as of commit 2abe04e (before the deeper search existed).
 ONE_STEP_ACTIONS = [28, 0, 45, 27, 45, 44, 38, 28, 37, 0, 38, 43, 2, 8, 36, 10, 10, 40, 44, 0,
                     1, 0, 45, 0, 0, 28, 38, 38, 45, 6, 37, 37, 37, 37, 45, 39, 37, 45, 9, 0, 7,
                     37, 0, 0, 0, 9, 39, 14]

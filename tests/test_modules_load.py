@@ -12,7 +12,7 @@ import pytest
 
 from benchmarks.__main__ import BENCHMARKS
 
-PACKAGES = ("shared", "world_sim", "uav_agent", "cloud_service", "jamnav", "benchmarks")
+PACKAGES = ("shared", "planning", "world_sim", "uav_agent", "cloud_service", "jamnav", "benchmarks")
 
 
 def _modules() -> list[str]:

@@ -13,13 +13,13 @@ import torch
 from safetensors.numpy import save as save_bytes
 
 from cloud_service.torch_networks import TorchNetwork, TorchSinrMapNetwork, TorchValueNetwork
-from shared.measurements import predict_probabilities
-from shared.networks import (
+from planning.networks import (
     Network,
     ValueNetwork,
     WeightsError,
     from_bytes,
     load_network,
+    predict_probabilities,
     save_network,
     sha256,
     to_bytes,

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from shared.orca import orca_velocities, preferred_velocity_toward
+from planning.orca import orca_velocities, preferred_velocity_toward
 
 TOL = 1e-9
 

@@ -10,13 +10,14 @@ from hypothesis import strategies as st
 
 from cloud_service.rollout import LookaheadController, fleet_observation, perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
-from shared.features import CELL_CLEARANCE_M, EXTENDED_METHOD, Observation, joint_state_size
+from planning.features import EXTENDED_METHOD, joint_state_size
+from planning.maps import TrueMap
+from planning.networks import ValueNetwork, load_network, value_architecture
+from planning.reference import LookaheadPolicy, inside_safe_cells, smallest_gaps
 from shared.kinematics import closest_approach, velocity_of
-from shared.networks import ValueNetwork, load_network, value_architecture
+from shared.observation import CELL_CLEARANCE_M, Observation
 from shared.outcomes import Outcome
-from shared.policy import LookaheadPolicy, TrueMap, inside_safe_cells
 from shared.radio import JammerParams, RadioModel
-from shared.rewards import smallest_gaps
 from shared.shipped import EXTENDED_VALUE_NET
 from tests import float32_bounds as bounds
 from world_sim.core import VectorWorld, episode_seed
@@ -99,7 +100,7 @@ def test_batched_decisions_equal_one_by_one(scenario):
 
 def test_raster_map_agrees_with_the_exact_map(scenario):
     from cloud_service.rollout import perfect_maps
-    from shared.policy import MAP_SPACING_M
+    from planning.maps import MAP_SPACING_M
     from world_sim.core import VectorWorld
 
     world = VectorWorld(scenario, 2, 2)
@@ -122,7 +123,7 @@ def test_raster_map_agrees_with_the_exact_map(scenario):
 def test_a_value_network_of_the_wrong_input_size_is_refused(scenario):
     import pytest
 
-    from shared.networks import WeightsError
+    from planning.networks import WeightsError
 
     with pytest.raises(WeightsError, match="features"):
         LookaheadPolicy(scenario, untrained(joint_state_size(scenario) + 1))

@@ -9,8 +9,9 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from shared.features import EXTENDED_METHOD, Observation, joint_state_size
-from shared.policy import LookaheadPolicy, reciprocal_velocities
+from planning.features import EXTENDED_METHOD, joint_state_size
+from planning.reference import LookaheadPolicy, reciprocal_velocities
+from shared.observation import Observation
 from shared.scenario import ScenarioError, load_scenario
 from tests.conftest import variant, write_variant
 from tests.test_lookahead_depth import ProjectionValue, scripted

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from shared.routes import RouteGrid
+from planning.routes import RouteGrid
 
 
 def grid(covered, cost=4.0):

@@ -234,7 +234,7 @@ def test_a_survey_map_from_another_world_is_flown_with_a_warning(capsys, tmp_pat
     of warning."""
     from cloud_service.sinr_training import fit_sinr_map
     from jamnav.cli import main
-    from shared.networks import load_network
+    from planning.networks import load_network
 
     shadowed, idealized = load_scenario("icc2021-shadowed"), load_scenario("icc2021")
     _, card = fit_sinr_map(shadowed, None, 200, 2, 0)

@@ -31,17 +31,20 @@ from cloud_service.sinr_mapping import (
 from cloud_service.sinr_memory import SinrMemory
 from cloud_service.sinr_training import fit_sinr_map, train_sinr_map, warm_up
 from jamnav.cli import main
+from planning.networks import (
+    accuracy_of,
+    from_bytes,
+    predict_levels,
+    predict_probabilities,
+    to_bytes,
+)
 from shared.measurements import (
     Measurement,
     MeasurementBatch,
     MeasurementSpec,
-    accuracy_of,
     gbs_features,
-    predict_levels,
-    predict_probabilities,
     scenario_features,
 )
-from shared.networks import from_bytes, to_bytes
 from shared.paper import TABLE_I_JAMMERS
 from shared.radio import RadioModel
 

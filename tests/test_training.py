@@ -22,7 +22,7 @@ from cloud_service.value_training import (
     validate,
 )
 from jamnav.cli import main
-from shared.networks import ValueNetwork, from_bytes, load_network, to_bytes
+from planning.networks import ValueNetwork, from_bytes, load_network, to_bytes
 
 CARD_KEYS = {"command", "seed", "episodes", "wall_seconds", "decisions_per_second", "git_commit",
              "validation"}

@@ -279,8 +279,8 @@ def test_new_maps_are_built_beside_the_deciding_thread_and_never_replaced_by_old
                                                                                     tmp_path):
     """A map's raster takes tens of milliseconds: the agent's "maps" thread builds it, and the
     deciding thread only swaps it in. A version built late never replaces a newer one."""
+    from planning.networks import sha256
     from shared.messages import SinrMap
-    from shared.networks import sha256
     from shared.shipped import sinr_map_for
 
     data = sinr_map_for(scenario).read_bytes()

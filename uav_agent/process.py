@@ -31,6 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from planning import PlannerError, lookahead_policy, require_planner
+from planning.maps import LevelRaster, RasterMap, sinr_network_raster
+from planning.networks import WeightsError, from_bytes
+from planning.reference import LookaheadPolicy
 from shared import access, bus
 from shared.measurements import MeasurementSpec, SpotFilter, scenario_features
 from shared.messages import (
@@ -44,13 +47,6 @@ from shared.messages import (
     ValueWeights,
     WeightsRefused,
     encode,
-)
-from shared.networks import WeightsError, from_bytes
-from shared.policy import (
-    LevelRaster,
-    LookaheadPolicy,
-    RasterMap,
-    sinr_network_raster,
 )
 from shared.scenario import MAX_UAVS, Scenario, ScenarioError, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from

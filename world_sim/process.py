@@ -32,7 +32,6 @@ import numpy as np
 import zenoh
 
 from shared import access, bus
-from shared.features import Observation, decision_reach, decision_relevant
 from shared.messages import (
     Action,
     AgentObservation,
@@ -55,6 +54,7 @@ from shared.messages import (
     outcome_labels,
 )
 from shared.neighbours import nearby_others
+from shared.observation import Observation, decision_reach, decision_relevant
 from shared.paper import JammerSetting
 from shared.radio import RadioModel
 from shared.scenario import MAX_UAVS, Scenario, ScenarioError, load_scenario

@@ -13,6 +13,7 @@ import zenoh
 
 from jamnav.console.maps import CoverageMaps
 from jamnav.console.state import ConsoleState
+from planning.networks import WeightsError
 from shared import bus
 from shared.messages import (
     JammerCommand,
@@ -23,7 +24,6 @@ from shared.messages import (
     WorldState,
     decode_event,
 )
-from shared.networks import WeightsError
 from shared.topics import Topics
 
 ASK_EVERY_S = 1.0  # until the world and the cloud have answered once: they may start later

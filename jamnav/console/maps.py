@@ -9,10 +9,10 @@ from typing import Any
 
 import numpy as np
 
-from shared.measurements import MeasurementSpec, predict_levels, scenario_features
+from planning.maps import LevelRaster
+from planning.networks import from_bytes, predict_levels
+from shared.measurements import MeasurementSpec, scenario_features
 from shared.messages import JammerInfo, SinrMap
-from shared.networks import from_bytes
-from shared.policy import LevelRaster
 from shared.radio import RadioModel
 from shared.scenario import Scenario
 

@@ -5,7 +5,8 @@ last observed velocity, the CADRL "filtered velocity", or with policy.others_mod
 each taking half of the avoidance as in ORCA), the SINR level there from a radio map, and the
 reward; it picks argmax R + gamma * V(next joint state). All UAVs and all actions go
 through the value network in one forward pass. Training, evaluation and the agent processes
-call this same code.
+call this same code; the compiled core (``planning.lookahead``) takes only the decision itself
+over, and is tested against this one. The radio maps it reads are those of ``planning.maps``.
 
 With policy.lookahead_depth > 1 a UAV at risk of disconnection (weak now or about to be, and
 its best one-step move leaving no next move onto a connected level) searches deeper: its most
@@ -16,201 +17,19 @@ The paper's method stays the one-step, constant-velocity lookahead it publishes.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
-from collections.abc import Callable, Iterator
-from typing import NamedTuple, Protocol
+from typing import NamedTuple
 
 import numpy as np
 
-from shared.features import (
-    CELL_CLEARANCE_M,
-    PAPER_METHOD,
-    MethodOptions,
-    Observation,
-    joint_state,
-    joint_state_size,
-)
+from planning.features import PAPER_METHOD, MethodOptions, joint_state, joint_state_size
+from planning.maps import RadioMap
+from planning.networks import ValueNetwork, WeightsError
+from planning.orca import orca_velocities
 from shared.kinematics import ActionSet, clamp, closest_approach
-from shared.measurements import predict_levels, scenario_features
-from shared.networks import SinrMapNetwork, ValueNetwork, WeightsError
-from shared.orca import orca_velocities
-from shared.radio import JammerParams, RadioModel
-from shared.rewards import RewardModel, smallest_gaps
-from shared.routes import FIELDS_KEPT, RouteGrid
+from shared.observation import CELL_CLEARANCE_M, Observation
+from shared.rewards import RewardModel
 from shared.scenario import Scenario
-
-
-class RadioMap(Protocol):
-    """Where the lookahead gets the SINR level of a position it has not been to yet."""
-
-    def level_at(self, xy: np.ndarray) -> np.ndarray:
-        """Levels at positions ``xy`` of shape (N, A, 2), one row per UAV: (N, A)."""
-
-    def route_distance(self, xy: np.ndarray, destination: np.ndarray) -> np.ndarray:
-        """Distance along the map's connected route from ``xy`` (N, ..., 2) to each row's
-        destination (N, 2); read only by the extended method."""
-
-    def for_rows(self, rows: np.ndarray) -> RadioMap:
-        """The map as read by the UAVs of ``rows`` (indices into the UAV rows), one row each:
-        how a deeper lookahead queries the UAVs it searches, each several times over."""
-
-
-MAP_SPACING_M = 0.5  # raster spacing of the lookahead's maps: well below a UAV's radius
-# Grid rows whose SINR-map features are computed at once: an agent's memory peaks 6 MiB above
-# its floor while it samples the icc2021 map (22 MiB with 64 rows, and no faster).
-RASTER_BLOCK_ROWS = 16
-RASTER_TILE_COLUMNS = 64
-
-
-class TrueMap:
-    """The simulator's map with a given jammer, computed exactly at every query."""
-
-    def __init__(self, radio: RadioModel, jammer: JammerParams | None):
-        self.radio = radio
-        self.jammer = jammer
-
-    def level_at(self, xy: np.ndarray) -> np.ndarray:
-        return self.radio.evaluate(xy, self.jammer).level
-
-    def for_rows(self, rows: np.ndarray) -> TrueMap:
-        return self  # one map for every row
-
-
-class LevelRaster:
-    """Quantized levels sampled on a square grid over the area plus a margin: the stored form
-    of a radio map. A query snaps to the nearest grid node, so it costs an index lookup
-    instead of a radio (or network) evaluation; beyond the margin the edge value holds."""
-
-    def __init__(self, levels: np.ndarray, x0: float, y0: float, spacing: float):
-        self.levels = np.ascontiguousarray(levels, dtype=np.int8)
-        self.x0, self.y0, self.spacing = x0, y0, spacing
-        # How many route fields the routing grid keeps (set before its first use): a fleet's
-        # destinations in-process, far fewer in an agent.
-        self.route_fields_kept = FIELDS_KEPT
-        self._routes: RouteGrid | None = None
-
-    @classmethod
-    def sample(
-        cls,
-        scenario: Scenario,
-        level_fn: Callable[[np.ndarray], np.ndarray],
-        spacing: float,
-    ) -> LevelRaster:
-        area = scenario.area
-        margin = scenario.uav.max_speed_mps * scenario.timing.step_s + spacing
-        xs = np.arange(area.x_min - margin, area.x_max + margin + spacing / 2, spacing)
-        ys = np.arange(area.y_min - margin, area.y_max + margin + spacing / 2, spacing)
-        grid = np.stack(np.meshgrid(xs, ys, indexing="xy"), axis=-1)
-        return cls(level_fn(grid), float(xs[0]), float(ys[0]), spacing)
-
-    def indices(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rows, cols = self.levels.shape[-2:]
-        col = np.rint((xy[..., 0] - self.x0) / self.spacing).astype(np.int64)
-        row = np.rint((xy[..., 1] - self.y0) / self.spacing).astype(np.int64)
-        return clamp(row, 0, rows - 1), clamp(col, 0, cols - 1)
-
-    def level_at(self, xy: np.ndarray) -> np.ndarray:
-        return self.levels[self.indices(xy)]
-
-    def for_rows(self, rows: np.ndarray) -> LevelRaster:
-        return self  # one map for every row
-
-    def routes(self, scenario: Scenario) -> RouteGrid:
-        """The routing grid of this map (built once): levels read every route_cell_m."""
-        if self._routes is None:
-            stride = max(1, round(scenario.policy.route_cell_m / self.spacing))
-            covered = self.levels[::stride, ::stride] > 0
-            self._routes = RouteGrid(covered, self.x0, self.y0, self.spacing * stride,
-                                     scenario.policy.route_uncovered_cost,
-                                     self.route_fields_kept)
-        return self._routes
-
-
-def sinr_network_raster(
-    network: SinrMapNetwork, scenario: Scenario, spacing: float = MAP_SPACING_M
-) -> LevelRaster:
-    """A SINR-mapping network's map sampled on the lookahead's grid, a block of rows at a time
-    (the features of a whole city-sized grid at once would take gigabytes)."""
-
-    def features(rows: np.ndarray) -> np.ndarray:
-        # Tile by tile: a compact tile reads only the GBSs near it (the city's ~40 of 192).
-        tiles = np.array_split(rows, max(1, rows.shape[1] // RASTER_TILE_COLUMNS), axis=1)
-        return np.concatenate([scenario_features(scenario, tile) for tile in tiles], axis=1)
-
-    def levels(grid: np.ndarray) -> np.ndarray:
-        blocks = np.array_split(grid, max(1, grid.shape[0] // RASTER_BLOCK_ROWS))
-        return np.concatenate([predict_levels(network, features(block)) for block in blocks])
-
-    return LevelRaster.sample(scenario, levels, spacing)
-
-
-class RouteFields(NamedTuple):
-    """Route fields as plain arrays: row n reads field ``slots[n]`` of ``stores[which[n]]``
-    (fields (S, rows, cols) float32 on a grid from (x0, y0) at ``cell`` metres), interpolated
-    bilinearly, plus ``offset[n]`` (``shared.routes.RouteGrid.distance``)."""
-
-    stores: list[np.ndarray]
-    slots: np.ndarray
-    offset: np.ndarray
-    x0: float
-    y0: float
-    cell: float
-
-
-class RasterMap:
-    """Several rasters of one shape, each UAV row reading its own (per-environment jammers)."""
-
-    def __init__(self, scenario: Scenario, rasters: list[LevelRaster], which: np.ndarray):
-        self.scenario = scenario
-        self.rasters = rasters
-        self.first = rasters[0]
-        self.stack = np.stack([raster.levels for raster in rasters])
-        self.which = which
-
-    def level_at(self, xy: np.ndarray) -> np.ndarray:
-        row, col = self.first.indices(xy)
-        which = self.which.reshape(self.which.shape + (1,) * (xy.ndim - 2))
-        _, rows, cols = self.stack.shape
-        return self.stack.ravel()[(which * rows + row) * cols + col]  # one index: 2x faster
-
-    def for_rows(self, rows: np.ndarray) -> RasterMap:
-        subset = copy.copy(self)  # the rasters and their route caches are shared, not copied
-        subset.which = self.which[rows]
-        return subset
-
-    def sweep_ahead(self, destination: np.ndarray) -> Iterator[None]:
-        """The route field to ``destination`` (2,) on the first raster (an agent's only one),
-        swept into its cache a line at a time (``RouteGrid.sweep_ahead``)."""
-        return self.first.routes(self.scenario).sweep_ahead(destination)
-
-    def route_fields(self, destination: np.ndarray, reach_m: np.ndarray,
-                     whole: np.ndarray | None = None) -> RouteFields:
-        """The route fields to each row's ``destination`` (N, 2) as plain arrays, computed as
-        far as each row's ``reach_m`` (N,) at least, everywhere for the rows ``whole`` marks
-        (N,): what ``route_distance`` interpolates, for a reader in compiled code."""
-        slots = np.empty(len(self.which), dtype=np.int64)
-        offset = np.empty(len(self.which))
-        grids = [raster.routes(self.scenario) for raster in self.rasters]
-        for index, grid in enumerate(grids):
-            rows = np.flatnonzero(self.which == index)
-            if rows.size:
-                slots[rows], offset[rows] = grid.fields(
-                    destination[rows], reach_m[rows],
-                    whole is not None and bool(whole[rows].any()))
-        first = grids[0]  # the rasters share one shape, so their routing grids one geometry
-        return RouteFields([grid.store for grid in grids], slots, offset, first.x0, first.y0,
-                           first.cell)
-
-    def route_distance(self, xy: np.ndarray, destination: np.ndarray) -> np.ndarray:
-        """Route distance (N, ...) from ``xy`` (N, ..., 2) to each row's destination."""
-        out = np.empty(xy.shape[:-1], dtype=np.float64)
-        for index, raster in enumerate(self.rasters):
-            rows = np.flatnonzero(self.which == index)
-            if rows.size:
-                out[rows] = raster.routes(self.scenario).distance(xy[rows], destination[rows])
-        return out
-
 
 CLOSING_TOLERANCE_M = 0.01  # inside the margin, closing by less than this still counts as holding
 # Far above the rounding of a gap bound over the area, far below anything R_c can tell apart.
@@ -277,6 +96,32 @@ def reciprocal_velocities(observation: Observation, time_horizon: float,
     predicted = others_velocity.copy()
     predicted[uav, other] = avoiding[:, 1]
     return predicted
+
+
+def smallest_gaps(
+    own_position: np.ndarray,
+    own_velocity: np.ndarray,
+    own_radius: np.ndarray,
+    other_position: np.ndarray,
+    other_velocity: np.ndarray,
+    other_radius: np.ndarray,
+    other_present: np.ndarray,
+    duration: float,
+    margin: float | np.ndarray = 0.0,
+) -> np.ndarray:
+    """Smallest gap over one step between each UAV and the others it can see, less a safety
+    ``margin`` per other (broadcast against other_radius).
+
+    Shapes: own_* (..., 2) / (...); other_* (..., M, 2) / (..., M); returns (...). Absent
+    others (padding, finished UAVs) count as infinitely far.
+    """
+    distance = closest_approach(
+        other_position - own_position[..., None, :],
+        other_velocity - own_velocity[..., None, :],
+        duration,
+    )
+    gap = distance - own_radius[..., None] - other_radius - margin
+    return np.where(other_present, gap, np.inf).min(axis=-1, initial=np.inf)
 
 
 class Decision(NamedTuple):

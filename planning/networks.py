@@ -1,10 +1,12 @@
-"""The two networks of the paper, their safetensors format, and their forward in numpy.
+"""The two networks of the paper, their safetensors format, their forward in numpy, and the
+levels a SINR map predicts from its logits.
 
 Value network: standardization, hidden (64, 32, 16) ReLU, tanh output scaled to the reward
 range. SINR-mapping network: standardization, hidden (32, 16, 8) ReLU, logits over levels.
 The standardization statistics are tensors like the weights, so they travel with them.
 
-Every decision and every map is computed by the numpy forward here, so a UAV's agent needs
+Every map, and every decision of the reference lookahead, is computed by the numpy forward
+here (the compiled lookahead reads the same layers: ``Network.layers``), so a UAV's agent needs
 neither torch nor its memory. Training, in the cloud, builds the same networks as torch
 modules and hands their numpy form to the lookahead.
 
@@ -174,6 +176,26 @@ class SinrMapNetwork(Network):
     def __call__(self, features: np.ndarray) -> np.ndarray:
         """Logits (..., levels) float32 of features (..., input_size)."""
         return self.outputs(features)
+
+
+def predict_probabilities(network: SinrMapNetwork, features: np.ndarray) -> np.ndarray:
+    """Probability of each level (softmax of the logits) for features of shape (..., F):
+    shape (..., levels), float32."""
+    logits = network(features)
+    logits -= logits.max(axis=-1, keepdims=True)
+    np.exp(logits, out=logits)
+    logits /= logits.sum(axis=-1, keepdims=True)
+    return logits
+
+
+def predict_levels(network: SinrMapNetwork, features: np.ndarray) -> np.ndarray:
+    """Predicted level (the most probable) for features of shape (..., F)."""
+    return predict_probabilities(network, features).argmax(-1).astype(np.int64)
+
+
+def accuracy_of(network: SinrMapNetwork, features, levels) -> float:
+    predicted = predict_levels(network, features)
+    return float((predicted == np.asarray(levels)).mean())
 
 
 def build_network(architecture: dict[str, Any], tensors: Mapping[str, np.ndarray]) -> Network:
