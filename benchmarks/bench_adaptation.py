@@ -391,8 +391,9 @@ def _estimate_seconds(scenario: Scenario, survey: SinrMapNetwork) -> float:
     area = scenario.area
     xy = rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max), (COSTED_REPORTS, 2))
     radio = RadioModel(scenario)
-    levels = radio.measured_levels(
-        radio.evaluate(xy, jammer_params(scenario, JammerSetting(10.0, -20.0, 1.0))).sinr_db, rng)
+    levels = radio.measured_reports(
+        radio.evaluate(xy, jammer_params(scenario, JammerSetting(10.0, -20.0, 1.0))).sinr_db,
+        rng).level
     no_jammer = predict_probabilities(survey, scenario_features(scenario, xy))
     seconds = []
     for _ in range(3):

@@ -96,8 +96,9 @@ def measurements_at(
     """Measurements at given positions ``xy`` (n, 2) under ``jammer``, labelled as a UAV's
     receiver reports them: the true SINR of ``radio`` (the world's, shadowed where the
     scenario says so) plus the receiver's measurement noise, drawn from ``rng``."""
-    levels = radio.measured_levels(radio.evaluate(xy, jammer).sinr_db, rng)
-    return labelled_batch(scenario, xy, levels, rng, time=time, step=step, source=source)
+    reports = radio.measured_reports(radio.evaluate(xy, jammer).sinr_db, rng)
+    return labelled_batch(scenario, xy, reports.level, rng, time=time, step=step, source=source,
+                          sinr_db=reports.sinr_db)
 
 
 def labelled_batch(
@@ -109,12 +110,14 @@ def labelled_batch(
     time: float | np.ndarray = 0.0,
     step: int | np.ndarray = 0,
     source: str | list[str] = "sim",
+    sinr_db: np.ndarray | None = None,
 ) -> MeasurementBatch:
-    """Uploads of ``levels`` reported at ``xy``, with ids drawn from ``rng`` (random 64-bit
-    numbers: unique in practice, and the same for the same seed)."""
+    """Uploads of ``levels`` (and the SINRs ``sinr_db``, if reported) reported at ``xy``, with
+    ids drawn from ``rng`` (random 64-bit numbers: unique in practice, and the same for the
+    same seed)."""
     ids = [f"{value:016x}" for value in rng.integers(0, 2**63, size=len(xy)).tolist()]
     return MeasurementBatch.of_arrays(ids, source, step, time, scenario_features(scenario, xy),
-                                      levels)
+                                      levels, sinr_db)
 
 
 # -- training -----------------------------------------------------------------------------------

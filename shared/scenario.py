@@ -109,6 +109,10 @@ class Uav(_Strict):
     measurements_per_step: int = Field(ge=1, le=100)
     # Std (dB) of the error on the SINR a UAV's receiver reports; 0 = exact reports.
     measurement_noise_db: NonNegative = 0.0
+    # What the receiver reports of each measurement: "level", its quantized level (the paper's
+    # setting), or "db", the measured SINR in steps of report_step_db, its level beside it.
+    report: Literal["level", "db"] = "level"
+    report_step_db: Positive = 0.5
     # A UAV keeps a new measurement only this far from its last kept one, or at a new level:
     # a hovering UAV would otherwise report one spot over and over.
     measurement_spacing_m: NonNegative = 0.25
