@@ -18,6 +18,7 @@ import numpy as np
 from benchmarks.common import Figure
 from cloud_service.evaluation import evaluate
 from cloud_service.jammer_estimation import (
+    SinrBelief,
     estimate_jammer,
     positions_from_features,
     report_shares,
@@ -34,14 +35,17 @@ from shared.scenario import Scenario, load_scenario
 from shared.shipped import sinr_map_for
 from world_sim.jammers import random_jammer
 
-SCENARIOS = ("icc2021", "icc2021-shadowed")
 UAVS = 4
 CHANGES = 20
 WARM_UP_S = 20.0  # flight before the change, so the fleet is spread over the area
+# Where the receivers report dB, the flight before the change in which the cloud gathers its
+# no-jammer reference as well (cloud_service/sinr_reference.py): a fleet in service has flown.
+REFERENCE_WARM_UP_S = 300.0
 AFTER_S = 60.0  # flight after the change
 STILL_S = 1800.0  # "30 min of flight with a still jammer"
 LOCALIZATION_SETTINGS = 50
 LOCALIZATION_FLIGHT_S = 10.0
+TOLD_SD_DB = 0.05  # how well the localization rows "told the true no-jammer world" know it
 TRUTH_SPACING_M = 2.0
 # How much of a change the fleet can see within the detection target's 5 s: the most the new
 # jammer lowers the true SINR at any report taken in that time.
@@ -53,11 +57,15 @@ SERVED_TARGETS = {"icc2021": {10.0: 95.0, 30.0: 97.0}}  # 10th percentile over t
 
 
 def run() -> list[Figure]:
-    figures = []
-    for name in SCENARIOS:
-        figures += adaptation_figures(load_scenario(name))
-    figures += localization_figures(load_scenario("icc2021-shadowed"))
-    return figures
+    """The paper's level reports in both worlds; in the shadowed world also after the fleet
+    has flown a while, with level reports and with dB reports, as NR's receivers give."""
+    shadowed = load_scenario("icc2021-shadowed")
+    reporting = shadowed.changed({"uav.report": "db"}, name="icc2021-shadowed, dB reports")
+    figures = adaptation_figures(load_scenario("icc2021"), WARM_UP_S)
+    figures += adaptation_figures(shadowed, WARM_UP_S)
+    figures += adaptation_figures(shadowed, REFERENCE_WARM_UP_S, quiet=False)
+    figures += adaptation_figures(reporting, REFERENCE_WARM_UP_S)
+    return figures + localization_figures(shadowed) + localization_figures(reporting)
 
 
 class TruthGrid:
@@ -102,8 +110,8 @@ def _mapper(scenario: Scenario, now: list[float], seed: int) -> OnlineSinrMapper
                             clock=lambda: now[0], background=False, seed=seed)
 
 
-def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
-    """No jammer for WARM_UP_S, then a random jammer for AFTER_S."""
+def _trial(scenario: Scenario, truth: TruthGrid, seed: int, warm_up_s: float) -> dict:
+    """No jammer for ``warm_up_s``, then a random jammer for AFTER_S."""
     rng = np.random.default_rng(seed)
     setting = random_jammer(scenario, rng)
     now = [0.0]
@@ -117,9 +125,9 @@ def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
     # at the change, then each published after it, the cloud's latency later.
     delay_s = delay_rounds(scenario.online_map.cloud_latency_s, dt) * dt
     in_service: list[tuple[float, SinrMapNetwork]] = []
-    for step in range(int((WARM_UP_S + AFTER_S) / dt)):
+    for step in range(int((warm_up_s + AFTER_S) / dt)):
         now[0] = step * dt
-        after = now[0] - WARM_UP_S
+        after = now[0] - warm_up_s
         fleet.fly()
         version = mapper.version
         uploads = fleet.uploads(jammer_params(scenario, setting if after >= 0 else None),
@@ -138,7 +146,7 @@ def _trial(scenario: Scenario, truth: TruthGrid, seed: int) -> dict:
             accuracy_first = truth.accuracy(mapper.current_network(), setting)
         if accuracy_30 is None and after >= 30.0:
             accuracy_30 = truth.accuracy(mapper.current_network(), setting)
-    detected = [e["t"] - WARM_UP_S for e in mapper.events if e["type"] == "change_detected"]
+    detected = [e["t"] - warm_up_s for e in mapper.events if e["type"] == "change_detected"]
     mapper.close()
     served = {at: truth.accuracy([net for since, net in in_service if since <= at][-1], setting)
               for at in SERVED_AT_S}
@@ -248,13 +256,16 @@ def _percentiles(values: list[float | None]) -> tuple[float, float]:
     return float(low), float(high)
 
 
-def adaptation_figures(scenario: Scenario) -> list[Figure]:
+def adaptation_figures(scenario: Scenario, warm_up_s: float, quiet: bool = True
+                       ) -> list[Figure]:
+    """CHANGES changes, each after ``warm_up_s`` of flight with no jammer; with ``quiet``,
+    also the false detections with no jammer at all."""
     truth = TruthGrid(scenario)
-    trials = [_trial(scenario, truth, 100 + k) for k in range(CHANGES)]
+    trials = [_trial(scenario, truth, 100 + k, warm_up_s) for k in range(CHANGES)]
     # Detection: the first detection at or after the change (earlier ones are false alarms).
     detection = [min((t for t in r["detected"] if t >= 0), default=None) for r in trials]
     early = sum(t < 0 for r in trials for t in r["detected"])
-    name = f"{scenario.name}, {UAVS} UAVs, {CHANGES} changes"
+    name = f"{scenario.name}, {UAVS} UAVs, {CHANGES} changes after {warm_up_s:.0f} s"
     d50, d90 = _percentiles(detection)
     # Reaction: from the first report that contradicts the map to the detection.
     reaction = [None if t is None or r["evidence"] is None else t - r["evidence"]
@@ -272,7 +283,6 @@ def adaptation_figures(scenario: Scenario) -> list[Figure]:
               if t is not None and t <= VISIBLE_WITHIN_S]
     first = [r["accuracy_first"] for r in trials if r["accuracy_first"] is not None]
     at_30 = [r["accuracy_30"] for r in trials]
-    on_missions, mission_success = _mission_detections(scenario, 0)
     return _served_figures(scenario, name, trials) + [
         Figure(f"{name}: change detected, median s", d50, "s", 2, lower_is_better=True),
         Figure(f"{name}: change detected, p90 s", d90, "s", 5, lower_is_better=True),
@@ -298,8 +308,16 @@ def adaptation_figures(scenario: Scenario) -> list[Figure]:
                "%", 97),
         Figure(f"{name}: accuracy vs truth 30 s after, worst %", 100 * float(np.min(at_30)),
                "%"),
-        Figure(f"{name}: detections before the change (20 s each)", early, "count", 0,
-               lower_is_better=True),
+        Figure(f"{name}: detections before the change ({warm_up_s:.0f} s each)", early, "count",
+               0, lower_is_better=True),
+    ] + (_quiet_figures(scenario) if quiet else [])
+
+
+def _quiet_figures(scenario: Scenario) -> list[Figure]:
+    """False detections with no jammer: on straight legs, flying missions, and the detector
+    alone at other thresholds and floors."""
+    on_missions, mission_success = _mission_detections(scenario, 0)
+    return [
         Figure(f"{scenario.name}: false detections, {UAVS} UAVs, {STILL_S / 60:.0f} min still",
                _still_detections(scenario, 7), "count", 0, lower_is_better=True),
         Figure(f"{scenario.name}: false detections flying missions, {UAVS} UAVs, per "
@@ -343,14 +361,19 @@ def localization_figures(scenario: Scenario) -> list[Figure]:
         xy = positions_from_features(scenario, data.features)
         # What the reports themselves hold: the estimate told the true no-jammer world (the
         # share of reports at each level at each point) and made whatever its certainty.
+        # With dB reports, told the no-jammer SINR itself, to a twentieth of a dB.
+        no_jammer_db = radio.evaluate(xy).sinr_db
         told = estimate_jammer(
-            scenario, xy, data.levels, no_jammer_levels=report_shares(
-                radio, radio.evaluate(xy).sinr_db, scenario.uav.measurement_noise_db),
+            scenario, xy, data.levels, reported_db=data.sinr_db,
+            no_jammer_levels=report_shares(radio, no_jammer_db,
+                                           scenario.uav.measurement_noise_db),
+            no_jammer_db=(SinrBelief(no_jammer_db, np.full(len(xy), TOLD_SD_DB))
+                          if scenario.uav.report == "db" else None),
             max_position_sd_m=np.inf, presence_llr=-np.inf)
         if told is not None and told.present:
             told_errors.append(float(np.hypot(told.x - setting.x, told.y - setting.y)))
             told_sds.append(max(told.sd_x_m, told.sd_y_m))
-        estimate = estimate_jammer(scenario, xy, data.levels,
+        estimate = estimate_jammer(scenario, xy, data.levels, reported_db=data.sinr_db,
                                    no_jammer_levels=predict_probabilities(survey, data.features))
         if estimate is None or not estimate.present:
             failures += 1
@@ -385,8 +408,9 @@ def _estimate_seconds(scenario: Scenario, survey: SinrMapNetwork) -> float:
     area = scenario.area
     xy = rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max), (COSTED_REPORTS, 2))
     radio = RadioModel(scenario)
-    levels = radio.measured_levels(
-        radio.evaluate(xy, jammer_params(scenario, JammerSetting(10.0, -20.0, 1.0))).sinr_db, rng)
+    levels = radio.measured_reports(
+        radio.evaluate(xy, jammer_params(scenario, JammerSetting(10.0, -20.0, 1.0))).sinr_db,
+        rng).level
     no_jammer = predict_probabilities(survey, scenario_features(scenario, xy))
     seconds = []
     for _ in range(3):

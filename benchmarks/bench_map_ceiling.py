@@ -88,7 +88,7 @@ class LocalReportMap:
         rng = np.random.default_rng(SEED)
         count = int(density * (area.x_max - area.x_min) * (area.y_max - area.y_min))
         reported_xy = rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max), (count, 2))
-        reported = radio.measured_levels(radio.evaluate(reported_xy).sinr_db, rng)
+        reported = radio.measured_reports(radio.evaluate(reported_xy).sinr_db, rng).level
         self.origin = np.array([area.x_min, area.y_min])
         self.shape = (int(np.ceil((area.y_max - area.y_min) / _CELL_M)),
                       int(np.ceil((area.x_max - area.x_min) / _CELL_M)))

@@ -137,6 +137,7 @@ class OnlineMaps:
         batch = MeasurementBatch.of_arrays(
             ids, [f"uav-{u}" for u in uav[rows]], int(world.steps[env[0]]), taken_at[sample],
             scenario_features(self.scenario, xy[rows, sample]), levels[rows, sample],
+            world.measured_sinr_db[env, uav][rows, sample],
         )
         self.mapper.ingest(batch)
         self._note_publication()

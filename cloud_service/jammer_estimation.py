@@ -120,6 +120,12 @@ _RATIO_RANGE_DB = (-30.0, 30.0)
 _SINR_STEP_DB = 0.05  # resolution of the level tables over the SINR
 _SINR_RANGE_DB = (-60.0, 40.0)  # beyond, every level's probability is at its limit
 _SD_STEP_DB = 0.05  # spreads are rounded to this to share level tables
+# A dB report's table spans its offsets from the believed SINR this far either way: past it
+# every spread in use leaves only the outlier floor.
+_OFFSET_RANGE_DB = 40.0
+# An outlier dB report (a deep shadow, a map error) is taken as uniform over this span of
+# SINRs, about what the area's SINRs span.
+_OUTLIER_SPAN_DB = 40.0
 # Hypotheses x measurements per vectorized block: its temporaries stay near the CPU cache.
 _BLOCK_ELEMENTS = 2**20
 
@@ -143,6 +149,29 @@ class JammerEstimate(NamedTuple):
 
 
 NO_JAMMER = JammerEstimate(False, None, None, None, None, None, None, None, 0, 0.0)
+
+
+class Reports(NamedTuple):
+    """The uploads a fit reads: where each was taken (n, 2), its level (n,) and its SINR (n,),
+    NaN where only the level was reported; reported SINRs come in steps of ``step_db``."""
+
+    xy: np.ndarray
+    levels: np.ndarray
+    sinr_db: np.ndarray
+    step_db: float | None
+
+    @classmethod
+    def of(cls, scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
+           reported_db: np.ndarray | None = None) -> Reports:
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        levels = np.asarray(levels, dtype=np.int64).reshape(-1)
+        sinr_db = (np.full(len(levels), np.nan) if reported_db is None
+                   else np.asarray(reported_db, dtype=np.float64).reshape(-1))
+        return cls(xy, levels, sinr_db,
+                   scenario.uav.report_step_db if np.isfinite(sinr_db).any() else None)
+
+    def take(self, rows: np.ndarray) -> Reports:
+        return Reports(self.xy[rows], self.levels[rows], self.sinr_db[rows], self.step_db)
 
 
 class SinrBelief(NamedTuple):
@@ -189,24 +218,39 @@ def positions_from_features(scenario: Scenario, features: np.ndarray) -> np.ndar
 
 def sinr_beliefs(
     radio: RadioModel, xy: np.ndarray, no_jammer_levels: np.ndarray | None = None,
-    shadowing_sigma_db: float | None = None,
+    shadowing_sigma_db: float | None = None, reference: SinrBelief | None = None,
 ) -> SinrBelief:
     """The world's no-jammer SINR at points ``xy`` (n, 2): the ideal model's, give or take
     ``shadowing_sigma_db``; with the no-jammer map there, ``no_jammer_levels`` (its levels
     (n,) or its probabilities of each level (n, levels)), that prior sharpened by what the
     map's probabilities read near a level's edge (``_prior_of_map``) and truncated to its
     most probable level's band (the mean and sd). A sigma of None is fitted to the map's
-    levels (``fit_shadowing_sigma``), or else ``SHADOWING_SIGMA_DB``."""
+    levels (``fit_shadowing_sigma``), or else ``SHADOWING_SIGMA_DB``. Where ``reference``
+    holds what was measured at a point with no jammer (a mean and sd; NaN where nothing
+    was), the ideal model's prior combined with that instead."""
     mean_db = radio.evaluate(xy).sinr_db
     if no_jammer_levels is None:
         sigma_db = SHADOWING_SIGMA_DB if shadowing_sigma_db is None else shadowing_sigma_db
-        return SinrBelief(mean_db, np.full_like(mean_db, sigma_db))
-    probabilities = _level_probabilities(no_jammer_levels, len(radio.level_edges_db) + 1)
-    lower_db, upper_db = _band_edges(radio, probabilities.argmax(axis=-1))
-    if shadowing_sigma_db is None:
-        shadowing_sigma_db = _fitted_sigma(mean_db, lower_db, upper_db)
-    return _truncated_normal(*_prior_of_map(radio, mean_db, shadowing_sigma_db, probabilities),
-                             lower_db, upper_db)
+        belief = SinrBelief(mean_db, np.full_like(mean_db, sigma_db))
+    else:
+        probabilities = _level_probabilities(no_jammer_levels, len(radio.level_edges_db) + 1)
+        lower_db, upper_db = _band_edges(radio, probabilities.argmax(axis=-1))
+        if shadowing_sigma_db is None:
+            shadowing_sigma_db = _fitted_sigma(mean_db, lower_db, upper_db)
+        belief = _truncated_normal(
+            *_prior_of_map(radio, mean_db, shadowing_sigma_db, probabilities), lower_db,
+            upper_db)
+    if reference is None:
+        return belief
+    # The SINR measured there with no jammer, where it was: the ideal model's prior sharpened
+    # by it, not confined to the map's band, which the map gets wrong where it errs.
+    sigma_db = SHADOWING_SIGMA_DB if shadowing_sigma_db is None else shadowing_sigma_db
+    known = np.isfinite(reference.mean_db)
+    precision = sigma_db**-2.0 + np.where(known, reference.sd_db, np.inf) ** -2.0
+    referenced = (sigma_db**-2.0 * mean_db + np.where(
+        known, reference.mean_db / np.where(known, reference.sd_db, 1.0) ** 2, 0.0)) / precision
+    return SinrBelief(np.where(known, referenced, belief.mean_db),
+                      np.where(known, precision**-0.5, belief.sd_db))
 
 
 def _level_probabilities(levels_or_probabilities: np.ndarray, level_count: int) -> np.ndarray:
@@ -334,12 +378,15 @@ def independence_weights(xy: np.ndarray, spacing_m: float) -> np.ndarray:
     return 1.0 / counts[cell_of.reshape(-1)]
 
 
-class _LevelTables:
-    """log P(reported level | believed SINR, spread) under the ordinal probit with the
-    outlier floor, tabulated over the SINR for every spread in use (rounded to
-    ``_SD_STEP_DB``, so that a few tables serve thousands of measurements)."""
+class _ReportTables:
+    """log P(report | believed SINR, spread), with the outlier floor, tabulated over the SINR
+    for every spread in use (rounded to ``_SD_STEP_DB``, so that a few tables serve thousands
+    of measurements). A level report's is the ordinal probit's: the probability of the
+    level's band. A dB report's (the SINR in steps of ``step_db``) is the probability of its
+    step's interval, a function of the report less the SINR, tabulated over that."""
 
-    def __init__(self, edges_db: np.ndarray, sds_db: np.ndarray, outlier_share: float):
+    def __init__(self, edges_db: np.ndarray, sds_db: np.ndarray, outlier_share: float,
+                 step_db: float | None):
         rounded, self.table_of = np.unique(np.rint(sds_db / _SD_STEP_DB), return_inverse=True)
         self.table_of = self.table_of.reshape(-1)
         sinr_db = np.arange(*_SINR_RANGE_DB, _SINR_STEP_DB)
@@ -347,18 +394,46 @@ class _LevelTables:
         bounds = np.concatenate([[-np.inf], edges_db, [np.inf]])
         self.level_count = len(bounds) - 1
         spread = (rounded * _SD_STEP_DB)[:, None, None]
-        log_model = _log_band_probability((bounds[:-1, None] - sinr_db) / spread,
-                                          (bounds[1:, None] - sinr_db) / spread)
-        floor = math.log(outlier_share / self.level_count)
-        self.values = np.logaddexp(math.log1p(-outlier_share) + log_model, floor).ravel()
+        self.values = _with_outliers(
+            _log_band_probability((bounds[:-1, None] - sinr_db) / spread,
+                                  (bounds[1:, None] - sinr_db) / spread),
+            outlier_share, 1.0 / self.level_count).ravel()
+        self.step_db = step_db
+        if step_db is not None:  # offsets of a report from the SINR, as for the SINR above
+            offsets_db = np.arange(-_OFFSET_RANGE_DB, _OFFSET_RANGE_DB, _SINR_STEP_DB)
+            spread = spread[:, 0]
+            self.db_values = _with_outliers(
+                _log_band_probability((offsets_db - step_db / 2.0) / spread,
+                                      (offsets_db + step_db / 2.0) / spread),
+                outlier_share, step_db / _OUTLIER_SPAN_DB).ravel()
+            self.offset_count = len(offsets_db)
 
-    def log_probability(self, sinr_db: np.ndarray, levels: np.ndarray, rows: np.ndarray):
-        """For measurement ``rows`` (their spreads), reported ``levels`` and SINRs (any
-        broadcastable shapes)."""
+    def log_probability(self, sinr_db: np.ndarray, levels: np.ndarray, rows: np.ndarray,
+                        reported_db: np.ndarray | None = None):
+        """For measurement ``rows`` (their spreads), reported ``levels`` and, where finite,
+        SINRs ``reported_db``, at believed SINRs ``sinr_db`` (any broadcastable shapes)."""
         step = np.rint((sinr_db - _SINR_RANGE_DB[0]) / _SINR_STEP_DB).astype(np.int64)
         np.clip(step, 0, self.sinr_count - 1, out=step)
         table = self.table_of[rows] * self.level_count + levels
-        return self.values[table * self.sinr_count + step]
+        by_level = self.values[table * self.sinr_count + step]
+        if reported_db is None or self.step_db is None:
+            return by_level
+        reported = np.isfinite(reported_db)
+        if not reported.any():
+            return by_level
+        offset = np.rint((np.where(reported, reported_db, 0.0) - sinr_db + _OFFSET_RANGE_DB)
+                         / _SINR_STEP_DB).astype(np.int64)
+        np.clip(offset, 0, self.offset_count - 1, out=offset)
+        by_db = self.db_values[self.table_of[rows] * self.offset_count + offset]
+        return np.where(reported, by_db, by_level)
+
+
+def _with_outliers(log_model: np.ndarray, outlier_share: float,
+                   outlier_probability: float) -> np.ndarray:
+    """A report's log-probability when a share ``outlier_share`` of reports contradicts the
+    model and falls anywhere, with probability ``outlier_probability``."""
+    return np.logaddexp(math.log1p(-outlier_share) + log_model,
+                        math.log(outlier_share * outlier_probability))
 
 
 class _Evidence:
@@ -368,10 +443,10 @@ class _Evidence:
     sides, so that one call's powers, up to that span apart, read them without clipping."""
 
     def __init__(
-        self, radio: RadioModel, jammer_height_m: float, xy: np.ndarray, levels: np.ndarray,
-        weights: np.ndarray, belief: SinrBelief, report_sigma_db: float, outlier_share: float,
-        power_span_db: float,
+        self, radio: RadioModel, jammer_height_m: float, reports: Reports, weights: np.ndarray,
+        belief: SinrBelief, report_sigma_db: float, outlier_share: float, power_span_db: float,
     ):
+        xy, levels, reported_db = reports.xy, reports.levels, reports.sinr_db
         self.xy = xy
         self.report_sigma_db = report_sigma_db
         _, _, co_channel = radio.serving(radio.gbs_received_power(xy))
@@ -382,15 +457,16 @@ class _Evidence:
         ratios_db = np.arange(self.ratio_low_db, _RATIO_RANGE_DB[1] + power_span_db,
                               _RATIO_STEP_DB)
         loss_db = 10.0 * np.log10(1.0 + 10.0 ** (ratios_db / 10.0))  # SINR lost to the jammer
-        tables = _LevelTables(radio.level_edges_db,
-                              np.hypot(belief.sd_db, report_sigma_db), outlier_share)
+        tables = _ReportTables(radio.level_edges_db, np.hypot(belief.sd_db, report_sigma_db),
+                               outlier_share, reports.step_db)
         rows = np.arange(len(xy))
         table = tables.log_probability(belief.mean_db[:, None] - loss_db, levels[:, None],
-                                       rows[:, None])
+                                       rows[:, None], reported_db[:, None])
         self.table = (weights[:, None] * table).astype(np.float32).ravel()
         self.ratio_count = len(ratios_db)
         self.row_start = (rows * self.ratio_count).astype(np.int32)
-        self.no_jammer = float(weights @ tables.log_probability(belief.mean_db, levels, rows))
+        self.no_jammer = float(weights @ tables.log_probability(belief.mean_db, levels, rows,
+                                                                reported_db))
 
     def log_likelihood_ratios(self, positions: np.ndarray, powers_dbw: np.ndarray) -> np.ndarray:
         """Log-likelihood of a jammer at each of ``positions`` (H, 2) with each effective
@@ -419,7 +495,9 @@ def estimate_jammer(
     xy: np.ndarray,
     levels: np.ndarray,
     *,
+    reported_db: np.ndarray | None = None,
     no_jammer_levels: np.ndarray | None = None,
+    no_jammer_db: SinrBelief | None = None,
     shadowing_sigma_db: float | None = None,
     report_sigma_db: float = REPORT_SIGMA_DB,
     outlier_share: float = OUTLIER_SHARE,
@@ -430,7 +508,8 @@ def estimate_jammer(
     exclusion_llr: float = EXCLUSION_LLR,
 ) -> JammerEstimate | None:
     """The jammer (at the scenario's jammer height) that best explains the reported
-    ``levels`` (n,) at positions ``xy`` (n, 2), or None when the data cannot pin it down.
+    ``levels`` (n,), and SINRs ``reported_db`` (n,) where they are finite, at positions
+    ``xy`` (n, 2), or None when the data cannot pin it down.
     ``no_jammer_levels``: the no-jammer map's level (n,), or better its probability of each
     level (n, levels), at each position, which the
     estimate should be given whenever the world may differ from the ideal model (see the
@@ -464,9 +543,12 @@ def estimate_jammer(
     ``REPORT_SIGMA_CHOICES_DB`` that explains the reports best (``_refitted``).
     """
 
+    reports = Reports.of(scenario, xy, levels, reported_db)
+
     def search_at(sigma_db: float) -> _Searched | None:
-        return _coarse_search(scenario, xy, levels, no_jammer_levels, shadowing_sigma_db,
-                              sigma_db, outlier_share, independent_spacing_m, min_measurements)
+        return _coarse_search(scenario, reports, no_jammer_levels, no_jammer_db,
+                              shadowing_sigma_db, sigma_db, outlier_share,
+                              independent_spacing_m, min_measurements)
 
     searched = search_at(report_sigma_db)
     if searched is None:
@@ -545,7 +627,9 @@ def jammer_hypotheses(
     xy: np.ndarray,
     levels: np.ndarray,
     *,
+    reported_db: np.ndarray | None = None,
     no_jammer_levels: np.ndarray | None = None,
+    no_jammer_db: SinrBelief | None = None,
     mass: float = HYPOTHESES_MASS,
     most: int = MOST_HYPOTHESES,
     presence_llr: float = HYPOTHESES_LLR,
@@ -556,7 +640,8 @@ def jammer_hypotheses(
     none (best LLR at least ``presence_llr``); None otherwise.
     The same search and model as ``estimate_jammer``, which answers None in that case when
     the posterior is too wide."""
-    searched = _default_search(scenario, xy, levels, no_jammer_levels, report_sigma_db)
+    searched = _default_search(scenario, Reports.of(scenario, xy, levels, reported_db),
+                               no_jammer_levels, no_jammer_db, report_sigma_db)
     if searched is None:
         return None
     return _hypotheses(scenario, searched, mass, most, presence_llr)
@@ -568,18 +653,22 @@ class JammerFit(NamedTuple):
 
 
 def locate_jammer(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, *,
+                  reported_db: np.ndarray | None = None,
                   no_jammer_levels: np.ndarray | None = None,
+                  no_jammer_db: SinrBelief | None = None,
                   report_sigma_db: float = REPORT_SIGMA_DB) -> JammerFit:
     """``estimate_jammer`` and, if it gives no estimate, ``jammer_hypotheses``, both with
     their defaults but ``report_sigma_db``, from one coarse search (most of the cost of
     each)."""
-    searched = _default_search(scenario, xy, levels, no_jammer_levels, report_sigma_db)
+    reports = Reports.of(scenario, xy, levels, reported_db)
+    searched = _default_search(scenario, reports, no_jammer_levels, no_jammer_db,
+                               report_sigma_db)
     if searched is None:
         return JammerFit(None, None)
     estimate = _decide(scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M)
     if estimate is not None:
         return JammerFit(_refitted(scenario, searched, estimate, lambda sigma_db: _default_search(
-            scenario, xy, levels, no_jammer_levels, sigma_db)), None)
+            scenario, reports, no_jammer_levels, no_jammer_db, sigma_db)), None)
     return JammerFit(None, _hypotheses(scenario, searched, HYPOTHESES_MASS, MOST_HYPOTHESES,
                                        HYPOTHESES_LLR))
 
@@ -616,35 +705,37 @@ class _Searched(NamedTuple):
     llr: np.ndarray  # (positions, powers): weighted LLR of each hypothesis against none
 
 
-def _default_search(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
-                    no_jammer_levels: np.ndarray | None,
+def _default_search(scenario: Scenario, reports: Reports, no_jammer_levels: np.ndarray | None,
+                    no_jammer_db: SinrBelief | None,
                     report_sigma_db: float = REPORT_SIGMA_DB) -> _Searched | None:
     """``_coarse_search`` with ``estimate_jammer``'s defaults."""
-    return _coarse_search(scenario, xy, levels, no_jammer_levels, None, report_sigma_db,
-                          OUTLIER_SHARE, INDEPENDENT_SPACING_M, MIN_MEASUREMENTS)
+    return _coarse_search(scenario, reports, no_jammer_levels, no_jammer_db, None,
+                          report_sigma_db, OUTLIER_SHARE, INDEPENDENT_SPACING_M,
+                          MIN_MEASUREMENTS)
 
 
-def _coarse_search(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
-                   no_jammer_levels: np.ndarray | None, shadowing_sigma_db: float | None,
-                   report_sigma_db: float, outlier_share: float, independent_spacing_m: float,
+def _coarse_search(scenario: Scenario, reports: Reports, no_jammer_levels: np.ndarray | None,
+                   no_jammer_db: SinrBelief | None, shadowing_sigma_db: float | None,
+                   report_sigma_db: float,
+                   outlier_share: float, independent_spacing_m: float,
                    min_measurements: int) -> _Searched | None:
     """The evidence of the located rows, the coarse search and its LLRs (positions x
     powers); None with fewer than ``min_measurements`` located rows."""
-    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    levels = np.asarray(levels, dtype=np.int64).reshape(-1)
-    located = np.isfinite(xy).all(axis=1)
-    xy, levels = xy[located], levels[located]
+    located = np.isfinite(reports.xy).all(axis=1)
+    reports = reports.take(located)
     if no_jammer_levels is not None:
         no_jammer_levels = np.asarray(no_jammer_levels)[located]  # levels or probabilities
-    if len(xy) < min_measurements:
+    if no_jammer_db is not None:
+        no_jammer_db = SinrBelief(no_jammer_db.mean_db[located], no_jammer_db.sd_db[located])
+    if len(reports.xy) < min_measurements:
         return None
     radio = RadioModel(scenario, shadowed=False)
     search = _CoarseSearch.of(scenario)
     evidence = _Evidence(
-        radio, scenario.jammer.height_m, xy, levels,
-        independence_weights(xy, independent_spacing_m),
-        sinr_beliefs(radio, xy, no_jammer_levels, shadowing_sigma_db), report_sigma_db,
-        outlier_share, np.ptp(search.powers_dbw))
+        radio, scenario.jammer.height_m, reports,
+        independence_weights(reports.xy, independent_spacing_m),
+        sinr_beliefs(radio, reports.xy, no_jammer_levels, shadowing_sigma_db, no_jammer_db),
+        report_sigma_db, outlier_share, np.ptp(search.powers_dbw))
     return _Searched(evidence, search,
                      evidence.log_likelihood_ratios(search.positions, search.powers_dbw))
 
@@ -794,6 +885,37 @@ def corrected_level_probabilities(
     probabilities = _corrected(scenario, _map_at(scenario, no_jammer_levels_at, xy), jammer,
                                xy.reshape(-1, 2), shadowing_sigma_db, report_sigma_db)
     return probabilities.reshape(*xy.shape[:-1], scenario.channel.level_count)
+
+
+def sinr_report_probabilities(
+    scenario: Scenario, xy: np.ndarray, reported_db: np.ndarray,
+    jammer: JammerEstimate | JammerHypotheses, belief: SinrBelief,
+    report_sigma_db: float = REPORT_SIGMA_DB,
+) -> np.ndarray:
+    """How probable each dB report (n,) at points ``xy`` (n, 2) is with ``jammer`` (with
+    hypotheses, the mixture by weight; with ``present`` false, none): the probability of its
+    report step's interval when the no-jammer SINR is ``belief`` (``sinr_beliefs``) less the
+    ideal model's loss to the jammer, spread by ``report_sigma_db``, with the outlier share
+    of ``_ReportTables``."""
+    estimates, weights = ((jammer.estimates, jammer.weights.tolist())
+                          if isinstance(jammer, JammerHypotheses) else ([jammer], [1.0]))
+    radio = RadioModel(scenario, shadowed=False)
+    _, signal, co_channel = radio.serving(radio.gbs_received_power(xy))
+    ideal_db = 10.0 * np.log10(radio.sinr_of(signal, co_channel, 0.0))
+    sd_db = np.hypot(belief.sd_db, report_sigma_db)
+    half_step = scenario.uav.report_step_db / 2.0
+    total = 0.0
+    for estimate, weight in zip(estimates, weights, strict=True):
+        mean_db = belief.mean_db
+        if estimate.present:
+            mean_db = mean_db - ideal_db + 10.0 * np.log10(radio.sinr_of(
+                signal, co_channel, radio.jammer_interference(xy, _params_of(scenario,
+                                                                             estimate))))
+        total = total + weight * np.exp(_log_band_probability(
+            (reported_db - half_step - mean_db) / sd_db,
+            (reported_db + half_step - mean_db) / sd_db))
+    outlier = OUTLIER_SHARE * scenario.uav.report_step_db / _OUTLIER_SPAN_DB
+    return (1.0 - OUTLIER_SHARE) * total + outlier
 
 
 def ideal_model_spread_db(scenario: Scenario, survey_sigma_db: float) -> float | None:

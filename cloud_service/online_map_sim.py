@@ -72,12 +72,13 @@ class Fleet:
         share = np.arange(1, samples + 1) / samples
         xy = self.previous[:, None] + share[None, :, None] * (self.position - self.previous)[
             :, None]
-        levels = self.radio.measured_levels(self.radio.evaluate(xy, jammer).sinr_db, self.rng)
-        rows, sample = np.nonzero(self.spots.keep(np.arange(len(xy)), xy, levels))
+        reports = self.radio.measured_reports(self.radio.evaluate(xy, jammer).sinr_db, self.rng)
+        rows, sample = np.nonzero(self.spots.keep(np.arange(len(xy)), xy, reports.level))
         taken_at = time - self.scenario.timing.step_s * (1 - share)
-        return labelled_batch(self.scenario, xy[rows, sample], levels[rows, sample], self.rng,
-                              time=taken_at[sample], step=step,
-                              source=self.sources[rows].tolist())
+        return labelled_batch(self.scenario, xy[rows, sample], reports.level[rows, sample],
+                              self.rng, time=taken_at[sample], step=step,
+                              source=self.sources[rows].tolist(),
+                              sinr_db=reports.sinr_db[rows, sample])
 
 
 @dataclass(frozen=True)

@@ -44,8 +44,11 @@ from cloud_service.jammer_estimation import (
     positions_from_features,
     posterior_hypotheses,
     sigma_fit_sample,
+    sinr_beliefs,
+    sinr_report_probabilities,
 )
 from cloud_service.sinr_memory import SinrMemory, Uploads
+from cloud_service.sinr_reference import SinrReference, shift_evidence
 from planning.maps import MAP_SPACING_M, LevelRaster, sinr_network_raster
 from planning.networks import SinrMapNetwork, predict_probabilities, sha256, to_bytes
 from shared.measurements import MeasurementBatch, scenario_features
@@ -92,8 +95,9 @@ def measurements_at(
     """Measurements at given positions ``xy`` (n, 2) under ``jammer``, labelled as a UAV's
     receiver reports them: the true SINR of ``radio`` (the world's, shadowed where the
     scenario says so) plus the receiver's measurement noise, drawn from ``rng``."""
-    levels = radio.measured_levels(radio.evaluate(xy, jammer).sinr_db, rng)
-    return labelled_batch(scenario, xy, levels, rng, time=time, step=step, source=source)
+    reports = radio.measured_reports(radio.evaluate(xy, jammer).sinr_db, rng)
+    return labelled_batch(scenario, xy, reports.level, rng, time=time, step=step, source=source,
+                          sinr_db=reports.sinr_db)
 
 
 def labelled_batch(
@@ -105,12 +109,14 @@ def labelled_batch(
     time: float | np.ndarray = 0.0,
     step: int | np.ndarray = 0,
     source: str | list[str] = "sim",
+    sinr_db: np.ndarray | None = None,
 ) -> MeasurementBatch:
-    """Uploads of ``levels`` reported at ``xy``, with ids drawn from ``rng`` (random 64-bit
-    numbers: unique in practice, and the same for the same seed)."""
+    """Uploads of ``levels`` (and the SINRs ``sinr_db``, if reported) reported at ``xy``, with
+    ids drawn from ``rng`` (random 64-bit numbers: unique in practice, and the same for the
+    same seed)."""
     ids = [f"{value:016x}" for value in rng.integers(0, 2**63, size=len(xy)).tolist()]
     return MeasurementBatch.of_arrays(ids, source, step, time, scenario_features(scenario, xy),
-                                      levels)
+                                      levels, sinr_db)
 
 
 # -- training -----------------------------------------------------------------------------------
@@ -164,14 +170,17 @@ class ChangeDetector:
         self._statistic.clear()
         self._excursion_start.clear()
 
-    def update(self, probability: np.ndarray, sources: list[str],
-               times: np.ndarray) -> DetectorCheck | None:
+    def update(self, probability: np.ndarray, sources: list[str], times: np.ndarray,
+               evidence_db: np.ndarray | None = None) -> DetectorCheck | None:
         """Feed the new uploads (the map's probability of each reported level, who took it,
-        when); returns the state after them (``fired`` set when a change is declared), None
-        when disarmed or given nothing."""
+        when, and where finite the nats a dB report weighs instead, ``shift_evidence``);
+        returns the state after them (``fired`` set when a change is declared), None when
+        disarmed or given nothing."""
         if not self.armed or len(probability) == 0:
             return None
         evidence = np.log(1.0 / self.levels) - np.log(np.maximum(probability, self.floor))
+        if evidence_db is not None:
+            evidence = np.where(np.isfinite(evidence_db), evidence_db, evidence)
         for step, source, t in zip(evidence.tolist(), sources, np.asarray(times).tolist(),
                                    strict=True):
             statistic = self._statistic.get(source, 0.0)
@@ -223,14 +232,14 @@ class WithdrawalTest:
         online = scenario.online_map
         return cls(online.withdrawal_threshold, online.probability_floor)
 
-    def update(self, with_jammer: np.ndarray, without: np.ndarray,
-               times: np.ndarray) -> WithdrawalCheck | None:
-        """Feed new reports (their probability with the jammer and without, when taken);
-        the state after them, ``fired`` at the first report that takes S to the threshold;
-        None when given nothing."""
+    def update(self, with_jammer: np.ndarray, without: np.ndarray, times: np.ndarray,
+               floors: np.ndarray | None = None) -> WithdrawalCheck | None:
+        """Feed new reports (their probability with the jammer and without, when taken, and
+        the floor of each, ``evidence``); the state after them, ``fired`` at the first report
+        that takes S to the threshold; None when given nothing."""
         if len(times) == 0:
             return None
-        for step, t in zip(self.evidence(with_jammer, without).tolist(),
+        for step, t in zip(self.evidence(with_jammer, without, floors).tolist(),
                            np.asarray(times).tolist(), strict=True):
             if self.statistic == 0.0:
                 self.since = t
@@ -241,10 +250,13 @@ class WithdrawalTest:
         return WithdrawalCheck(float(times[-1]), self.statistic, self.since, self.reports,
                                False)
 
-    def evidence(self, with_jammer: np.ndarray, without: np.ndarray) -> np.ndarray:
-        """Nats each report weighs against the jammer: log(q / p), both at least ``floor``."""
-        return (np.log(np.maximum(without, self.floor))
-                - np.log(np.maximum(with_jammer, self.floor)))
+    def evidence(self, with_jammer: np.ndarray, without: np.ndarray,
+                 floors: np.ndarray | None = None) -> np.ndarray:
+        """Nats each report weighs against the jammer: log(q / p), both at least ``floor``
+        (or each report's of ``floors``: a dB report's probability is of a half-dB interval,
+        its outliers already counted, ``sinr_report_probabilities``)."""
+        floor = self.floor if floors is None else floors
+        return (np.log(np.maximum(without, floor)) - np.log(np.maximum(with_jammer, floor)))
 
 
 # -- the online mapper --------------------------------------------------------------------------
@@ -382,6 +394,7 @@ class OnlineSinrMapper:
             estimate if estimate is not None and estimate.present else None)
         self._estimate_sigma_db = 0.0  # the shadowing fitted beside ``_correction``
         self._withdrawal = WithdrawalTest.of(scenario)
+        self.reference = SinrReference(scenario)
         self._network = network
         self._base = base_network or network
         self._base_accuracy = accuracy if base_network is None else base_accuracy
@@ -470,9 +483,12 @@ class OnlineSinrMapper:
                     inside = np.flatnonzero(~self.scenario.area.outside(xy))
                     check = self.detector.update(probability[inside],
                                                  [stored.sources[k] for k in inside],
-                                                 stored.times[inside])
+                                                 stored.times[inside],
+                                                 self._shift_evidence(stored, xy)[inside])
                     if check is not None and check.fired:
                         self._on_change(check)
+                    else:
+                        self._remember(stored, xy)
                 elif self._change is not None:
                     self._change.measurements += int((stored.times >= self._change.start).sum())
             job = None
@@ -489,6 +505,23 @@ class OnlineSinrMapper:
         if withdrawn is not None and self.publish is not None:
             self.publish(withdrawn)
         return IngestReport(len(stored), duplicates, check)
+
+    def _remember(self, stored: MeasurementBatch, xy: np.ndarray) -> None:
+        """Reports taken while no change is handled enter the no-jammer reference in turn,
+        if no jammer is believed either."""
+        if self._correction is None:
+            self.reference.offer(xy, stored.sinr_db, stored.times)
+            self.reference.commit(float(stored.times.max()))
+
+    def _shift_evidence(self, stored: MeasurementBatch, xy: np.ndarray) -> np.ndarray:
+        """What each dB report weighs for a jammer against the no-jammer reference
+        (``shift_evidence``), while no jammer is believed; NaN elsewhere, and for level
+        reports."""
+        if self._correction is not None or not np.isfinite(stored.sinr_db).any():
+            return np.full(len(stored), np.nan)
+        return shift_evidence(self.reference.at(xy), stored.sinr_db,
+                              self.scenario.uav.measurement_noise_db,
+                              self.scenario.online_map.detection_shift_db)
 
     @property
     def model_spread_db(self) -> float | None:
@@ -551,11 +584,23 @@ class OnlineSinrMapper:
         1.8 dB off with an 8 m sd, was withdrawn by one UAV's run along the zone edge it
         misplaced when taken as exact (bench_adaptation, icc2021, change 116)."""
         kept = np.flatnonzero(np.isfinite(xy).all(axis=1) & ~self.scenario.area.outside(xy))
-        levels, xy = data.levels[kept], xy[kept]
+        levels, xy, reported_db = data.levels[kept], xy[kept], data.sinr_db[kept]
         if isinstance(jammer, JammerEstimate):
             jammer = posterior_hypotheses(jammer)
-        return (self.model_probability(levels, xy, jammer, sigma_db),
-                self.model_probability(levels, xy, None, sigma_db), data.times[kept])
+        with_jammer = self.model_probability(levels, xy, jammer, sigma_db)
+        without = self.model_probability(levels, xy, None, sigma_db)
+        floors = np.full(len(kept), self.scenario.online_map.probability_floor)
+        reported = np.isfinite(reported_db)
+        if reported.any():  # a dB report weighs by its SINR
+            here = xy[reported]
+            belief = sinr_beliefs(RadioModel(self.scenario, shadowed=False), here,
+                                  self._no_jammer_probabilities(here), sigma_db or None,
+                                  self.reference.at(here))
+            with_jammer[reported], without[reported] = (
+                sinr_report_probabilities(self.scenario, here, reported_db[reported], model,
+                                          belief) for model in (jammer, NO_JAMMER))
+            floors[reported] = 0.0
+        return with_jammer, without, data.times[kept], floors
 
     def _weigh_correction(self, stored: MeasurementBatch,
                           xy: np.ndarray) -> PublishedWeights | None:
@@ -602,6 +647,7 @@ class OnlineSinrMapper:
 
     def _on_change(self, check: DetectorCheck) -> None:
         start = self.detector.change_start
+        self.reference.discard_since(start)
         self._change = _Change(start, self.clock(), len(self.memory.since(start)))
         self.events.append({"type": "change_detected", "t": self.clock(),
                             "version": self._version, "source": check.source,
@@ -632,7 +678,9 @@ class OnlineSinrMapper:
         # say how near a level's edge each report lies (see jammer_estimation).
         xy = positions_from_features(self.scenario, data.features)
         located = locate_jammer(
-            self.scenario, xy, data.levels, no_jammer_levels=self._no_jammer_probabilities(xy),
+            self.scenario, xy, data.levels, reported_db=data.sinr_db,
+            no_jammer_levels=self._no_jammer_probabilities(xy),
+            no_jammer_db=self.reference.at(xy),
             report_sigma_db=(REPORT_SIGMA_DB if self._model_spread_db is None
                              else self._model_spread_db))
         estimate = located.estimate
@@ -734,14 +782,15 @@ class OnlineSinrMapper:
         return self._confirmed(change, withdrawal, *evidence)
 
     def _confirmed(self, change: _Change, withdrawal: WithdrawalTest, with_jammer: np.ndarray,
-                   without: np.ndarray, times: np.ndarray) -> bool:
+                   without: np.ndarray, times: np.ndarray, floors: np.ndarray) -> bool:
         """Whether the reports taken since the change was detected show its jammer still
         there, by ``online_map.confirmation_threshold`` nats at least. A jammer seen only in
         the reports that raised the change (a blip, switched off since) is fitted by a still
         jammer placed where no later report could contradict it; such a phantom is never
         served, and the change's first corrected map waits for this."""
         if not change.confirmed:
-            support = -withdrawal.evidence(with_jammer, without)[times > change.detected_at]
+            support = -withdrawal.evidence(with_jammer, without, floors)[
+                times > change.detected_at]
             change.confirmed = float(support.sum()) >= (
                 self.scenario.online_map.confirmation_threshold)
         return change.confirmed

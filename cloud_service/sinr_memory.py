@@ -12,6 +12,7 @@ One connection, guarded by a lock, so the bus thread and the retraining worker c
 
 from __future__ import annotations
 
+import math
 import sqlite3
 import threading
 from collections import Counter
@@ -33,13 +34,14 @@ CREATE TABLE IF NOT EXISTS measurements (
     step INTEGER NOT NULL,
     time REAL NOT NULL,
     level INTEGER NOT NULL,
-    features BLOB NOT NULL
+    features BLOB NOT NULL,
+    sinr_db REAL  -- NULL: the receiver reported the level only
 );
 CREATE INDEX IF NOT EXISTS measurements_time ON measurements(time);
 CREATE TABLE IF NOT EXISTS rejected (reason TEXT PRIMARY KEY, count INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 """
-_COLUMNS = "id, source, step, time, level, features"
+_COLUMNS = "id, source, step, time, level, features, sinr_db"
 _LOOKUP_CHUNK = 900  # ids per query: below the 999 variables of SQLite builds before 3.32
 
 Uploads = MeasurementBatch | Iterable[Measurement | Mapping]
@@ -60,7 +62,16 @@ class SinrMemory:
         # that the fleet refills within seconds, and it keeps commits off the disk's fsync.
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.executescript(_SCHEMA)
+        self._add_reported_sinr()
         self._check_spec()
+
+    def _add_reported_sinr(self) -> None:
+        """A memory written before reports carried the SINR gets the column, empty: its rows
+        read back as level reports."""
+        columns = {row[1] for row in self._db.execute("PRAGMA table_info(measurements)")}
+        if "sinr_db" not in columns:
+            with self._db:
+                self._db.execute("ALTER TABLE measurements ADD COLUMN sinr_db REAL")
 
     def _check_spec(self) -> None:
         want = {"feature_size": str(self.spec.feature_size),
@@ -95,7 +106,7 @@ class SinrMemory:
             fresh = self._fresh_rows(batch.ids)
             new = batch if len(fresh) == len(batch) else batch.take(fresh)
             self._db.executemany(
-                f"INSERT INTO measurements ({_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?)",
+                f"INSERT INTO measurements ({_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?)",
                 zip(
                     new.ids,
                     new.sources,
@@ -103,6 +114,7 @@ class SinrMemory:
                     new.times.tolist(),
                     new.levels.tolist(),
                     [row.tobytes() for row in new.features],
+                    [None if math.isnan(db) else db for db in new.sinr_db.tolist()],
                     strict=True,
                 ),
             )
@@ -165,7 +177,7 @@ class SinrMemory:
                                     params).fetchall()
         if not rows:
             return MeasurementBatch.empty(self.spec.feature_size)
-        ids, sources, steps, times, levels, blobs = zip(*rows, strict=True)
+        ids, sources, steps, times, levels, blobs, sinr_db = zip(*rows, strict=True)
         features = np.frombuffer(b"".join(blobs), dtype=np.float32)
         return MeasurementBatch(
             ids=list(ids),
@@ -174,6 +186,7 @@ class SinrMemory:
             times=np.array(times, dtype=np.float64),
             features=features.reshape(len(rows), self.spec.feature_size).copy(),
             levels=np.array(levels, dtype=np.int64),
+            sinr_db=np.array([np.nan if db is None else db for db in sinr_db], dtype=np.float64),
         )
 
     def close(self) -> None:

@@ -111,19 +111,25 @@ def _add_jammer(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--no-jammer", action="store_true", help="no jammer at all")
 
 
-def _add_cloud_latency(parser: argparse.ArgumentParser) -> None:
+def _add_online_map_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cloud-latency", type=float, default=None, metavar="S",
                         help="flight seconds from an upload to the online map it triggers in "
                              "service, 0 to 3600 (default: the scenario's "
                              "online_map.cloud_latency_s)")
+    parser.add_argument("--reports", choices=("level", "db"), default=None,
+                        help="what the UAVs' receivers report: the SINR's level (the paper's) "
+                             "or the SINR itself in dB (default: the scenario's uav.report)")
 
 
-def with_cloud_latency(args: argparse.Namespace, scenario: Scenario) -> Scenario:
-    """``scenario`` with --cloud-latency applied, if given."""
-    if args.cloud_latency is None:
-        return scenario
-    check_range("--cloud-latency", args.cloud_latency, 0, 3600)
-    return scenario.changed({"online_map.cloud_latency_s": args.cloud_latency})
+def with_online_map_options(args: argparse.Namespace, scenario: Scenario) -> Scenario:
+    """``scenario`` with --cloud-latency and --reports applied, where given."""
+    changes = {}
+    if args.cloud_latency is not None:
+        check_range("--cloud-latency", args.cloud_latency, 0, 3600)
+        changes["online_map.cloud_latency_s"] = args.cloud_latency
+    if args.reports is not None:
+        changes["uav.report"] = args.reports
+    return scenario.changed(changes) if changes else scenario
 
 
 def scenario_with_jammer(args: argparse.Namespace) -> Scenario:
@@ -267,7 +273,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     check_range("--seed", args.seed, 0, SEED_MAX)
     if args.swap_every is not None:
         check_range("--swap-every", args.swap_every, 1)
-    scenario = with_cloud_latency(args, scenario_with_jammer(args))
+    scenario = with_online_map_options(args, scenario_with_jammer(args))
     check_fleet("--uavs", args.uavs or scenario.missions.uav_count, scenario, args.seed)
     jammer = RadioModel.jammer_of(scenario)
     setting = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
@@ -277,9 +283,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
             raise UsageError(f"--sinr-map is the proposed method's initial map; --method "
                              f"{args.method} does not read one")
         survey_map_argument("--sinr-map", args.sinr_map, scenario)
-    if args.cloud_latency is not None and args.method != "proposed":
-        raise UsageError(f"--cloud-latency is the online map's; --method {args.method} flies "
-                         "without one")
+    for option, value in (("--cloud-latency", args.cloud_latency), ("--reports", args.reports)):
+        if value is not None and args.method != "proposed":
+            raise UsageError(f"{option} is the online map's; --method {args.method} flies "
+                             "without one")
     if args.model is not None and args.method not in LOOKAHEAD_METHODS:
         raise UsageError(f"--model: --method {args.method} flies without a value network")
     torch.set_num_threads(1)
@@ -325,7 +332,7 @@ def cmd_table(args: argparse.Namespace) -> int:
     check_range("--seed", args.seed, 0, SEED_MAX)
     out = output_path("--out", args.out, directory=True)
     torch.set_num_threads(1)
-    scenario = with_cloud_latency(args, _load_scenario(args))
+    scenario = with_online_map_options(args, _load_scenario(args))
     check_fleet("the scenario's missions.uav_count", scenario.missions.uav_count, scenario,
                 args.seed)
     nets = {"paper": value_net_path(args.model),
@@ -693,7 +700,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--swap-every", type=int, default=None, metavar="K",
                             help="resilience evaluation: move the jammer to a fresh random "
                                  "setting every K episodes")
-    _add_cloud_latency(evaluation)
+    _add_online_map_options(evaluation)
     evaluation.add_argument("--json", action="store_true", help="print JSON")
     evaluation.add_argument("--per-episode", action="store_true",
                             help="include each episode's per-UAV outcomes")
@@ -712,7 +719,7 @@ def build_parser() -> argparse.ArgumentParser:
     table.add_argument("--extended-model", default=None,
                        help="the extended column's value network (a name or a path; default: "
                             "the best shipped one for the scenario's fleet)")
-    _add_cloud_latency(table)
+    _add_online_map_options(table)
     table.set_defaults(handler=cmd_table)
 
     figures = commands.add_parser("figures", help="the paper's Fig. 2a, 2b and 3 from real runs")

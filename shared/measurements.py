@@ -11,6 +11,7 @@ measurement must satisfy (feature length, finite values, known level) are checke
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -21,6 +22,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from shared.scenario import Scenario
 
 PER_GBS_FEATURES = ("dx", "dy", "distance", "elevation", "azimuth")
+# The widest SINR a report may carry, either way (dB): past any real receiver's range (NR's
+# SS-SINR reports span -23 to 40 dB), so only a broken or forged report is refused.
+MAX_REPORTED_DB = 100.0
 
 
 def features_per_gbs(scenario: Scenario) -> int:
@@ -164,6 +168,10 @@ class Measurement(BaseModel):
     # Quantized SINR level measured there. Its range depends on the scenario (checked by
     # MeasurementSpec); the int32 bound only keeps absurd values from overflowing the arrays.
     level: int = Field(ge=-(2**31), lt=2**31)
+    # The SINR measured there (dB, in the receiver's report steps) where the scenario's UAVs
+    # report it (uav.report = "db"); None from a receiver that reports levels only.
+    sinr_db: float | None = Field(default=None, ge=-MAX_REPORTED_DB, le=MAX_REPORTED_DB,
+                                  allow_inf_nan=False)
 
 
 # Measurement's fields in order. An agent holds the measurements it takes as plain tuples in
@@ -182,6 +190,7 @@ class MeasurementBatch:
     times: np.ndarray  # (n,) float64
     features: np.ndarray  # (n, F) float32
     levels: np.ndarray  # (n,) int64
+    sinr_db: np.ndarray  # (n,) float64, NaN where a receiver reported the level only
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -195,8 +204,10 @@ class MeasurementBatch:
         times: np.ndarray | float,
         features: np.ndarray,
         levels: np.ndarray,
+        sinr_db: np.ndarray | None = None,
     ) -> MeasurementBatch:
-        """A batch from arrays; a scalar source, step or time applies to every row."""
+        """A batch from arrays; a scalar source, step or time applies to every row, and no
+        ``sinr_db`` means levels only."""
         n = len(ids)
         with np.errstate(over="ignore"):  # beyond float32 becomes inf, refused as not finite
             features = np.asarray(features, dtype=np.float32)
@@ -207,6 +218,8 @@ class MeasurementBatch:
             times=np.broadcast_to(np.asarray(times, dtype=np.float64), (n,)).copy(),
             features=features.reshape(n, -1) if n else features.reshape(0, features.shape[-1]),
             levels=np.asarray(levels, dtype=np.int64).reshape(n),
+            sinr_db=(np.full(n, np.nan) if sinr_db is None
+                     else np.asarray(sinr_db, dtype=np.float64).reshape(n).copy()),
         )
 
     @classmethod
@@ -223,19 +236,22 @@ class MeasurementBatch:
             times=self.times[index],
             features=self.features[index],
             levels=self.levels[index],
+            sinr_db=self.sinr_db[index],
         )
 
     def records(self) -> list[Measurement]:
         """Validated records, e.g. to send; a row the model refuses raises ValidationError."""
         return [
-            Measurement(id=i, source=s, step=int(st), time=float(t), features=f, level=int(lv))
-            for i, s, st, t, f, lv in zip(
+            Measurement(id=i, source=s, step=int(st), time=float(t), features=f, level=int(lv),
+                        sinr_db=None if math.isnan(db) else db)
+            for i, s, st, t, f, lv, db in zip(
                 self.ids,
                 self.sources,
                 self.steps,
                 self.times,
                 self.features.tolist(),
                 self.levels,
+                self.sinr_db.tolist(),
                 strict=True,
             )
         ]
@@ -249,6 +265,7 @@ class MeasurementBatch:
             times=np.concatenate([b.times for b in batches]),
             features=np.concatenate([b.features for b in batches]),
             levels=np.concatenate([b.levels for b in batches]),
+            sinr_db=np.concatenate([b.sinr_db for b in batches]),
         )
 
 
@@ -292,6 +309,8 @@ class MeasurementSpec:
             np.array([r.time for r in kept], dtype=np.float64),
             np.array([r.features for r in kept], dtype=np.float64).reshape(-1, self.feature_size),
             np.array([r.level for r in kept], dtype=np.int64),
+            np.array([np.nan if r.sinr_db is None else r.sinr_db for r in kept],
+                     dtype=np.float64),
         )
         batch, more = self.screen(batch)
         return batch, rejected + more
@@ -302,7 +321,11 @@ class MeasurementSpec:
         n = len(batch)
         if batch.features.ndim != 2 or batch.features.shape[1] != self.feature_size:
             return MeasurementBatch.empty(self.feature_size), +Counter(wrong_length=n)
-        finite = np.isfinite(batch.features).all(axis=1) & np.isfinite(batch.times)
+        # A reported SINR is NaN where only the level was reported; anything else must be a
+        # number a receiver can report.
+        reported = np.isnan(batch.sinr_db) | (np.abs(batch.sinr_db) <= MAX_REPORTED_DB)
+        finite = (np.isfinite(batch.features).all(axis=1) & np.isfinite(batch.times)
+                  & reported)
         known = (batch.levels >= 0) & (batch.levels < self.level_count)
         rejected = Counter()
         if not finite.all():

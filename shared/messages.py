@@ -22,7 +22,7 @@ import msgpack
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
 
-from shared.measurements import MEASUREMENT_FIELDS, Measurement
+from shared.measurements import MAX_REPORTED_DB, MEASUREMENT_FIELDS, Measurement
 from shared.observation import Observation
 from shared.outcomes import Outcome
 from shared.radio import JammerParams
@@ -47,6 +47,7 @@ XY = tuple[Finite, Finite]
 # What a UAV's own state may hold: far beyond any area and airframe, but small enough that the
 # features and the lookahead computed from it stay finite.
 Coordinate = Annotated[float, Field(ge=-1e6, le=1e6, allow_inf_nan=False)]
+ReportedDb = Annotated[float, Field(ge=-MAX_REPORTED_DB, le=MAX_REPORTED_DB, allow_inf_nan=False)]
 Place = tuple[Coordinate, Coordinate]
 Physical = Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)]
 Text = Annotated[str, Field(min_length=1, max_length=200)]
@@ -96,6 +97,9 @@ class AgentObservation(Message):
     # none at an episode's start). The world simulates the receiver, noise included.
     measured: list[tuple[Coordinate, Coordinate, Level]] = Field(default_factory=list,
                                                                  max_length=MAX_REPORTS)
+    # The SINR of each of those reports (dB, in its report steps) where the scenario's
+    # receivers report it (uav.report = "db"); empty where they report levels only.
+    measured_db: list[ReportedDb] = Field(default_factory=list, max_length=MAX_REPORTS)
     # Where the UAV flies once this mission ends (the next in its mission queue; none when
     # the world has not planned one), so that its agent prepares that route between decisions.
     next_destination: Place | None = None
@@ -109,11 +113,13 @@ class AgentObservation(Message):
                    len(self.others_radius), len(self.others_present)}
         if len(lengths) != 1:
             raise ValueError("others_* lists differ in length")
+        _check_reported_db(self.measured, self.measured_db)
         return self
 
     @classmethod
     def of_row(cls, observation: Observation, row: int, episode: int, uav: int,
                measured: list[tuple[float, float, int]] = (),
+               measured_db: list[float] = (),
                others: np.ndarray | None = None,
                next_destination: np.ndarray | None = None,
                sinr_version: int | None = None) -> AgentObservation:
@@ -131,7 +137,7 @@ class AgentObservation(Message):
             others_velocity=[tuple(v) for v in o.others_velocity[row][keep].tolist()],
             others_radius=o.others_radius[row][keep].tolist(),
             others_present=o.others_present[row][keep].tolist(),
-            measured=list(measured),
+            measured=list(measured), measured_db=list(measured_db),
             next_destination=(None if next_destination is None
                               else tuple(np.asarray(next_destination, dtype=float).tolist())),
             sinr_version=sinr_version,
@@ -177,6 +183,18 @@ class MeasurementRound(Message):
     uav: UavId
     flown_s: Finite  # seconds of flight of the run at the end of that step: the reports' clock
     measured: list[tuple[Coordinate, Coordinate, Level]] = Field(max_length=MAX_REPORTS)
+    measured_db: list[ReportedDb] = Field(default_factory=list, max_length=MAX_REPORTS)
+
+    @model_validator(mode="after")
+    def _one_sinr_a_report(self) -> MeasurementRound:
+        _check_reported_db(self.measured, self.measured_db)
+        return self
+
+
+def _check_reported_db(measured: list, measured_db: list) -> None:
+    """Reports carry an SINR each, or none does."""
+    if measured_db and len(measured_db) != len(measured):
+        raise ValueError(f"measured_db: {len(measured_db)} SINRs for {len(measured)} reports")
 
 
 class RoundOpened(Message):

@@ -41,6 +41,13 @@ class RadioReading(NamedTuple):
     serving_gbs: np.ndarray  # int64 index into the scenario's GBS positions
 
 
+class Reports(NamedTuple):
+    """What UAV receivers report at some points."""
+
+    level: np.ndarray  # int8, of the measured SINR
+    sinr_db: np.ndarray  # the measured SINR in report steps; NaN where only levels are reported
+
+
 class RadioModel:
     """SINR at UAV altitude for the GBS layout of one scenario, with any jammer or none.
 
@@ -65,6 +72,8 @@ class RadioModel:
         self._beamwidth_rad = math.radians(gbs.beamwidth_3db_deg)
         self._max_attenuation_db = gbs.max_attenuation_db
         self.measurement_noise_db = scenario.uav.measurement_noise_db
+        self.report_step_db = (scenario.uav.report_step_db if scenario.uav.report == "db"
+                               else None)
         self.shadowing = shadowing_field(scenario) if shadowed else None
         # (K, channels) indicator, None when every GBS shares one channel (the paper's case,
         # kept to the plain sum, bit for bit).
@@ -164,9 +173,16 @@ class RadioModel:
             return sinr_db
         return sinr_db + rng.normal(0.0, self.measurement_noise_db, size=sinr_db.shape)
 
-    def measured_levels(self, sinr_db: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """The level a UAV's receiver reports where the true SINR is ``sinr_db`` (int8)."""
-        return self.level_of(self.measured_sinr_db(sinr_db, rng))
+    def measured_reports(self, sinr_db: np.ndarray, rng: np.random.Generator) -> Reports:
+        """What a UAV's receiver reports where the true SINR is ``sinr_db``. The level is that
+        of the measured SINR, not of its rounded report, so that a world reports the same
+        levels, draw for draw, whichever it reports: dB reports only add to level ones."""
+        measured_db = self.measured_sinr_db(sinr_db, rng)
+        if self.report_step_db is None:
+            reported_db = np.full(measured_db.shape, np.nan)
+        else:
+            reported_db = np.round(measured_db / self.report_step_db) * self.report_step_db
+        return Reports(self.level_of(measured_db), reported_db)
 
     def evaluate(self, xy: np.ndarray, jammer: JammerParams | None = None) -> RadioReading:
         """SINR (Eq. 1) at every point of ``xy`` (shape (..., 2)); serving GBS = strongest."""

@@ -109,6 +109,10 @@ class Uav(_Strict):
     measurements_per_step: int = Field(ge=1, le=100)
     # Std (dB) of the error on the SINR a UAV's receiver reports; 0 = exact reports.
     measurement_noise_db: NonNegative = 0.0
+    # What the receiver reports of each measurement: "level", its quantized level (the paper's
+    # setting), or "db", the measured SINR in steps of report_step_db, its level beside it.
+    report: Literal["level", "db"] = "level"
+    report_step_db: Positive = 0.5
     # A UAV keeps a new measurement only this far from its last kept one, or at a new level:
     # a hovering UAV would otherwise report one spot over and over.
     measurement_spacing_m: NonNegative = 0.25
@@ -248,6 +252,12 @@ class OnlineMap(_Strict):
     # Flight seconds from the cloud having an upload to a map it triggers flying on the UAVs:
     # in-process runs put a map published at step t in service at t + ceil(latency / dt).
     cloud_latency_s: Annotated[float, Field(ge=0, le=3600, allow_inf_nan=False)]
+    # Where receivers report the SINR (uav.report = "db"): the side of the cells in which the
+    # cloud averages the no-jammer reports (cloud_service.sinr_reference), the flight a report
+    # waits before it enters, and the loss the detector tests those reports for.
+    reference_cell_m: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 1.0
+    reference_delay_s: NonNegative = 10.0
+    detection_shift_db: Positive = 1.0
 
 
 class Scenario(_Strict):

@@ -106,7 +106,7 @@ def test_the_world_reports_along_the_path_with_seeded_noise(scenario):
     np.testing.assert_array_equal(reports[0], reports[1])
     radio = world.radio
     sinr_db = np.zeros(20_000) - 3.0 + 1e-9  # on the threshold: noise decides the level
-    below = radio.measured_levels(sinr_db, np.random.default_rng(0)) == 0
+    below = radio.measured_reports(sinr_db, np.random.default_rng(0)).level == 0
     assert abs(below.mean() - 0.5) < 0.02  # symmetric noise
 
 

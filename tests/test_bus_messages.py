@@ -16,6 +16,7 @@ from shared.messages import (
     AgentObservation,
     JammerCommand,
     JammerInfo,
+    MeasurementRound,
     MeasurementUpload,
     MessageError,
     RasterGrid,
@@ -94,6 +95,18 @@ def test_uploads_and_jammer_commands_have_limits():
     assert decode(MeasurementUpload, encode(MeasurementUpload(uav=0, measurements=[record])))
     with pytest.raises(MessageError, match="measurements"):
         decode(MeasurementUpload, msgpack.packb({"uav": 0, "measurements": []}))
+    reported = record.model_copy(update={"sinr_db": -2.5})
+    upload = encode(MeasurementUpload(uav=0, measurements=[record, reported]))
+    assert [m.sinr_db for m in decode(MeasurementUpload, upload).measurements] == [None, -2.5]
+    for bad in (float("nan"), 1e9, "loud"):
+        with pytest.raises(MessageError, match="sinr_db"):
+            decode(MeasurementUpload, msgpack.packb(
+                {"uav": 0, "measurements": [{**record.model_dump(), "sinr_db": bad}]}))
+    round_ = {"round": 1, "episode": 0, "step": 1, "uav": 0, "flown_s": 1.0,
+              "measured": [(0.0, 0.0, 1), (1.0, 0.0, 2)]}
+    assert decode(MeasurementRound, msgpack.packb({**round_, "measured_db": [-2.5, 0.0]}))
+    with pytest.raises(MessageError, match="2 reports"):
+        decode(MeasurementRound, msgpack.packb({**round_, "measured_db": [-2.5]}))
     with pytest.raises(ValueError, match="set needs"):
         JammerCommand(action="set", x=1.0)
     with pytest.raises(ValueError, match="takes no"):

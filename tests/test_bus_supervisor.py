@@ -5,6 +5,7 @@ status), the restart of a killed agent, and that nothing outlives the supervisor
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 from pathlib import Path
@@ -158,25 +159,37 @@ def test_agents_measure_and_upload_what_the_in_process_evaluation_uploads(superv
 
 def _memory_rows(path: Path, scenario) -> list[tuple]:
     """A memory's measurements in the order they arrived, all but their ids (an agent's and
-    the in-process evaluation's differ): source, step, time, level and features."""
+    the in-process evaluation's differ): source, step, time, level, SINR (None for a level
+    report) and features."""
     with SinrMemory(path, MeasurementSpec.of(scenario)) as memory:
         stored = memory.recent(memory.count())
+    sinr_db = [None if math.isnan(db) else db for db in stored.sinr_db.tolist()]
     return list(zip(stored.sources, stored.steps.tolist(), stored.times.tolist(),
-                    stored.levels.tolist(), map(tuple, stored.features.tolist()), strict=True))
+                    stored.levels.tolist(), sinr_db, map(tuple, stored.features.tolist()),
+                    strict=True))
 
 
-@pytest.mark.parametrize("latency", [None, 0.0, 30.0],
-                         ids=["scenario-latency", "no-latency", "30-s-latency"])
+@pytest.mark.parametrize(("latency", "reports"),
+                         [(None, "level"), (0.0, "level"), (30.0, "level"), (None, "db")],
+                         ids=["scenario-latency", "no-latency", "30-s-latency", "db-reports"])
 def test_the_cloud_on_the_lockstep_clock_flies_eval_s_maps_and_outcomes(supervisor, tmp_path,
-                                                                       latency):
+                                                                       latency, reports):
     """Lockstep with the online map puts the cloud on the clock: each step's uploads are
     taken, and what they trigger finished, before the world goes on, in simulated time. The
-    same seed, jammers (a fresh one every 2 episodes) and cloud latency then give what
-    ``jamnav eval --method proposed`` gives: the same maps, published at the same flight
+    same seed, jammers (a fresh one every 2 episodes), cloud latency and reports then give
+    what ``jamnav eval --method proposed`` gives: the same maps, published at the same flight
     times (so in service at the same steps), the same stored measurements, in order, and the
     same per-UAV outcomes."""
     run = tmp_path / "run"
     extra = [] if latency is None else ["--cloud-latency", str(latency)]
+    scenario = load_scenario()
+    if reports == "db":  # a scenario file whose receivers report the SINR, as users write one
+        path = tmp_path / "reporting.toml"
+        path.write_text(resolve_scenario_path(None).read_text().replace(
+            "[uav]\n", '[uav]\nreport = "db"\n', 1))
+        scenario = load_scenario(path)
+        assert scenario.uav.report == "db"
+        extra += ["--scenario", str(path)]
     process = supervisor("--uavs", "3", "--episodes", "4", "--lockstep", "--map", "online",
                          "--jammer", "0,0,1", "--swap-every", "2", "--seed", "5",
                          "--deadline", "10", "--no-figures", *extra,
@@ -184,7 +197,6 @@ def test_the_cloud_on_the_lockstep_clock_flies_eval_s_maps_and_outcomes(supervis
     _, err = process.communicate(timeout=400)
     assert process.returncode == 0, err[-2000:]
     report = json.loads((run / "report.json").read_text())
-    scenario = load_scenario()
     if latency is not None:
         scenario = scenario.changed({"online_map.cloud_latency_s": latency})
     expected = evaluate(scenario, "proposed", 4, 5, JammerSetting(0.0, 0.0, 1.0), 3,
@@ -195,7 +207,8 @@ def test_the_cloud_on_the_lockstep_clock_flies_eval_s_maps_and_outcomes(supervis
                     (run / "sinr_maps").glob("sinr_map_v*.json")), key=lambda c: c["version"])
     assert len(published) >= 2  # the jammer was met, and the maps followed it
     assert [(card["flown_s"], card["sha256"]) for card in cards] == published
-    assert _memory_rows(run / RUN_DIR_FILE, scenario) == _memory_rows(
-        tmp_path / "eval" / "measurements.sqlite", scenario)
+    stored = _memory_rows(run / RUN_DIR_FILE, scenario)
+    assert stored == _memory_rows(tmp_path / "eval" / "measurements.sqlite", scenario)
+    assert all((row[4] is not None) == (reports == "db") for row in stored)
     assert report["outcomes"] == expected["outcomes"]
     assert report["missed_deadlines"] == 0

@@ -143,6 +143,8 @@ CASES = [
     (["eval", "--cloud-latency", "nan"], 2),
     (["eval", "--cloud-latency", "1e9"], 2),
     (["eval", "--method", "perfect", "--cloud-latency", "1"], 2),
+    (["eval", "--method", "outdated", "--reports", "db"], 2),
+    (["eval", "--reports", "decibel"], 2),
     (["table", "--cloud-latency", "inf", "--out", "{tmp}/t"], 2),
     (["cloud-latency", "--latencies", "0,x", "--out", "{tmp}/c"], 2),
     (["cloud-latency", "--latencies", "-1", "--out", "{tmp}/c"], 2),

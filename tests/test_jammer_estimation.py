@@ -57,7 +57,7 @@ def reports(scenario: Scenario, jammer: JammerParams | None, xy: np.ndarray, rng
     """Levels the world's receivers report at ``xy``, and the world's no-jammer levels there
     (what a perfectly learned no-jammer map says)."""
     truth = RadioModel(scenario)
-    levels = truth.measured_levels(truth.evaluate(xy, jammer).sinr_db, rng)
+    levels = truth.measured_reports(truth.evaluate(xy, jammer).sinr_db, rng).level
     return levels, truth.evaluate(xy).level
 
 

@@ -172,7 +172,7 @@ def test_measurement_noise_has_the_stated_statistics(shadowed):
     assert sigma > 0
     assert abs(float(error.mean())) < 4 * sigma / math.sqrt(len(error))
     assert float(error.std()) == pytest.approx(sigma, rel=0.01)
-    levels = radio.measured_levels(truth, np.random.default_rng(11))
+    levels = radio.measured_reports(truth, np.random.default_rng(11)).level
     np.testing.assert_array_equal(levels, radio.level_of(truth + error))
     assert levels.dtype == np.int8
 
@@ -182,7 +182,7 @@ def test_exact_receivers_draw_no_noise(scenario):
     rng = np.random.default_rng(2)
     before = rng.bit_generator.state
     truth = np.array([-3.5, -2.5, 0.0])
-    np.testing.assert_array_equal(radio.measured_levels(truth, rng), radio.level_of(truth))
+    np.testing.assert_array_equal(radio.measured_reports(truth, rng).level, radio.level_of(truth))
     assert rng.bit_generator.state == before
 
 
@@ -200,7 +200,8 @@ def test_measurements_are_labelled_with_the_noisy_truth(shadowed):
     # Noisy receivers: labels leave the truth as often as the receiver's noise makes them.
     batch = measurements_at(shadowed, radio, None, xy, np.random.default_rng(9))
     flipped = float((batch.levels != exact).mean())
-    expected = float((radio.measured_levels(sinr_db, np.random.default_rng(10)) != exact).mean())
+    reported = radio.measured_reports(sinr_db, np.random.default_rng(10)).level
+    expected = float((reported != exact).mean())
     assert 0.05 < expected < 0.5
     assert flipped == pytest.approx(expected, abs=0.03)  # 5,000 labels: sd ~0.6 point
 

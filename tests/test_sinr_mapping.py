@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import json
 import math
+import sqlite3
 import threading
 
 import numpy as np
@@ -178,6 +179,45 @@ def test_memory_survives_reopen_and_dedupes(tmp_path, scenario):
         assert len(set(sample.ids)) == 100 and set(sample.ids) <= set(everything.ids)
 
 
+def test_memory_keeps_the_reported_sinr_and_reads_an_older_file_as_level_reports(tmp_path,
+                                                                                  scenario):
+    """dB reports come back with their SINRs (records and arrays alike), level reports with
+    NaN; a memory written before reports carried the SINR opens with its rows as level
+    reports, and takes dB reports beside them."""
+    reporting = scenario.changed({"uav.report": "db", "uav.measurement_noise_db": 1.0})
+    spec = MeasurementSpec.of(scenario)
+    path = tmp_path / "memory.sqlite"
+    levels_only = _batch(scenario, 20, 1)
+    with_db = simulated_measurements(reporting, None, 30, np.random.default_rng(2), time=5.0)
+    # Half-dB steps, levels of the SINR measured before rounding: within a quarter dB.
+    assert np.all(np.isnan(levels_only.sinr_db)) and np.all(np.isfinite(with_db.sinr_db))
+    np.testing.assert_array_equal(with_db.sinr_db * 2, np.round(with_db.sinr_db * 2))
+    radio = RadioModel(reporting)
+    assert np.all(radio.level_of(with_db.sinr_db - 0.25) <= with_db.levels)
+    assert np.all(with_db.levels <= radio.level_of(with_db.sinr_db + 0.25))
+    with sqlite3.connect(path) as older:  # the schema before the sinr_db column
+        older.executescript("""CREATE TABLE measurements (seq INTEGER PRIMARY KEY,
+            id TEXT NOT NULL UNIQUE, source TEXT NOT NULL, step INTEGER NOT NULL,
+            time REAL NOT NULL, level INTEGER NOT NULL, features BLOB NOT NULL);""")
+        older.executemany("INSERT INTO measurements (id, source, step, time, level, features) "
+                          "VALUES (?, ?, ?, ?, ?, ?)",
+                          [(i, s, int(st), float(t), int(lv), f.tobytes()) for i, s, st, t, lv, f
+                           in zip(levels_only.ids, levels_only.sources, levels_only.steps,
+                                  levels_only.times, levels_only.levels, levels_only.features,
+                                  strict=True)])
+    older.close()
+    with SinrMemory(path, spec) as memory:
+        assert memory.append(with_db.records()[:10]) == (10, 0)
+        assert memory.append(with_db.take(np.arange(10, 30))) == (20, 0)
+    with SinrMemory(path, spec) as memory:
+        everything = memory.recent(100)
+    assert everything.ids == levels_only.ids + with_db.ids
+    assert np.all(np.isnan(everything.sinr_db[:20]))
+    np.testing.assert_array_equal(everything.sinr_db[20:], with_db.sinr_db)
+    np.testing.assert_array_equal(everything.levels, np.concatenate([levels_only.levels,
+                                                                     with_db.levels]))
+
+
 def test_memory_keeps_the_most_recent(tmp_path, scenario):
     with SinrMemory(tmp_path / "m.sqlite", MeasurementSpec.of(scenario), capacity=250) as memory:
         batches = [_batch(scenario, 100, seed) for seed in range(4)]
@@ -203,10 +243,14 @@ def test_bad_measurements_are_refused_and_counted(tmp_path, scenario):
         assert memory.append([short, {"id": "x"}, {**record, "level": -1, "id": "neg"}]) == (0, 0)
         wide = MeasurementBatch.of_arrays(["w"], "uav", 0, 0.0, np.zeros((1, 99)), [0])
         assert memory.append(wide) == (0, 0)
+        absurd = MeasurementBatch.of_arrays(good.ids[:2], "uav", 0, 0.0, good.features[:2],
+                                            good.levels[:2], [np.inf, -1e9])
+        assert memory.append(absurd) == (0, 0)
+        assert memory.append([{**record, "id": "loud", "sinr_db": 1e9}]) == (0, 0)
     with SinrMemory(path, spec) as memory:
         assert memory.count() == 2
-        assert memory.rejected == {"not_finite": 1, "unknown_level": 2, "wrong_length": 2,
-                                   "malformed": 1}
+        assert memory.rejected == {"not_finite": 3, "unknown_level": 2, "wrong_length": 2,
+                                   "malformed": 2}
     with pytest.raises(ValueError, match="unknown_level"):
         spec.check({**record, "level": 7})
     assert spec.check(record) == Measurement(**record)

@@ -28,8 +28,10 @@ LOG = logging.getLogger("test-uploads")
 
 
 def measurements(first: int, count: int) -> list[tuple]:
-    """Records as an agent gives them to its outbox (``uploads.FEATURES_DTYPE``)."""
-    return [(f"0-test-{n}", "uav-0", n, 1e9 + n, struct.pack("<3f", 0.5 * n, -1.0, 12.25), n % 3)
+    """Records as an agent gives them to its outbox (``uploads.FEATURES_DTYPE``): every other
+    one with the SINR reported, as from a receiver that reports it."""
+    return [(f"0-test-{n}", "uav-0", n, 1e9 + n, struct.pack("<3f", 0.5 * n, -1.0, 12.25), n % 3,
+             None if n % 2 else 0.5 * n - 7.0)
             for n in range(first, first + count)]
 
 
@@ -124,6 +126,17 @@ def test_the_file_is_rewritten_as_receipts_come_and_stays_small(tmp_path):
     assert path.stat().st_size < record
     again = agents.next()
     assert held(again) == [] and again.ledger.taken == again.ledger.acknowledged == 5000
+    agents.die()
+
+
+def test_an_outbox_written_before_reports_carried_the_sinr_loads_as_level_reports(tmp_path):
+    """Records of seven fields (no SINR), as agents wrote them before, are held and sent as
+    level reports: an upgrade loses nothing an agent had not yet delivered."""
+    old = [record[:-1] for record in measurements(0, 3)]
+    frames = b"".join(uploads._frame([0, number, *record]) for number, record in enumerate(old))
+    outbox_path(tmp_path, 0).write_bytes(frames)
+    agents = Agents(tmp_path)
+    assert held(agents.next()) == [(*record, None) for record in old]
     agents.die()
 
 
@@ -230,40 +243,49 @@ class UnansweredSession:
         return []
 
 
-def flight(steps: int) -> list[AgentObservation]:
+def flight(steps: int, reports_db: bool) -> list[AgentObservation]:
     """Observations whose reports wander, hover (repeats the spot filter drops) and change
-    level."""
+    level, with their SINRs if ``reports_db``."""
     rng = np.random.default_rng(4)
     xy = 100.0 + np.cumsum(rng.normal(0, 0.3, (steps * 10, 2)), axis=0).reshape(steps, 10, 2)
     levels = (np.cumsum(rng.random(steps * 10) < 0.1) % 4).reshape(steps, 10)
+    sinr_db = np.round(rng.normal(0, 4, (steps, 10)) * 2) / 2 if reports_db else None
     return [AgentObservation(
         episode=0, step=step, uav=3, position=tuple(xy[step, -1]), velocity=(0.0, 0.0),
         heading=0.0, destination=(0.0, 0.0), radius=1.0, max_speed=5.0, level=0, below_steps=0,
         others_position=[], others_velocity=[], others_radius=[], others_present=[],
         measured=[(x, y, int(level)) for (x, y), level in zip(xy[step], levels[step],
-                                                              strict=True)])
+                                                              strict=True)],
+        measured_db=[] if sinr_db is None else sinr_db[step].tolist())
         for step in range(steps)]
 
 
-def test_the_agent_uploads_the_measurement_upload_its_models_would_make(scenario, tmp_path):
+@pytest.mark.parametrize("reports_db", [False, True], ids=["levels", "db"])
+def test_the_agent_uploads_the_measurement_upload_its_models_would_make(scenario, tmp_path,
+                                                                       reports_db):
     """The flight loop queues rows, not models: what the uploader sends is byte for byte the
     MeasurementUpload the models would make of the same measurements (the reports kept, their
-    features, ids, times), valid as the cloud checks it, before and after a restart."""
+    features, SINRs, ids, times), valid as the cloud checks it, before and after a restart."""
     with (mock.patch.multiple(process.bus, reliable_publisher=mock.DEFAULT,
                               subscribe=mock.DEFAULT, serve_status=mock.DEFAULT),
           mock.patch.object(process.time, "time", return_value=1.7e9)):
         agent = process.AgentService(None, Topics("test"), scenario, 3, LOG, outbox_dir=tmp_path)
-        observations = flight(6)
+        observations = flight(6, reports_db)
         for observation in observations:
             agent._measure(observation)
     spots, numbers, expected = SpotFilter(scenario, 1), itertools.count(), []
     for observation in observations:
         reports = np.array(observation.measured)
-        kept = reports[spots.keep([0], reports[None, :, :2], reports[None, :, 2])[0]]
+        keep = spots.keep([0], reports[None, :, :2], reports[None, :, 2])[0]
+        kept = reports[keep]
+        sinr_db = (np.array(observation.measured_db)[keep].tolist() if reports_db
+                   else [None] * len(kept))
         expected += [Measurement(id=f"3-{agent.nonce}-{next(numbers)}", source="uav-3",
-                                 step=observation.step, time=1.7e9, features=row, level=level)
-                     for row, level in zip(scenario_features(scenario, kept[:, :2]).tolist(),
-                                           kept[:, 2].astype(int).tolist(), strict=True)]
+                                 step=observation.step, time=1.7e9, features=row, level=level,
+                                 sinr_db=db)
+                     for row, level, db in zip(scenario_features(scenario, kept[:, :2]).tolist(),
+                                               kept[:, 2].astype(int).tolist(), sinr_db,
+                                               strict=True)]
     assert 10 < len(expected) < 60  # some reports dropped, all in one upload
 
     for outbox in (agent.outbox, open_outbox(100, tmp_path, 3, LOG)):  # and a restarted agent's

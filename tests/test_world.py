@@ -159,3 +159,32 @@ def test_an_ended_mission_leaves_the_others_readings_and_reports_as_they_were():
         truth = RadioModel(shadowed).evaluate(worlds[1].position, worlds[1].jammer()).sinr_db
         np.testing.assert_allclose(worlds[1].sinr_db[flying], truth[flying], rtol=1e-12)
     assert not worlds[1].measured[0, 2]
+
+
+def test_a_world_that_reports_the_sinr_reports_the_same_levels_beside_it():
+    """dB reports add to level reports: the same seed gives the same levels, draw for draw,
+    each beside its SINR in half-dB steps within a quarter step of the SINR its level came
+    from, and that SINR within a few receiver-noise sds of the true one."""
+    shadowed = load_scenario("icc2021-shadowed")
+    reporting = shadowed.changed({"uav.report": "db"})
+    worlds = [VectorWorld(s, 2, 4, record_measurements=True) for s in (shadowed, reporting)]
+    rng = np.random.default_rng(3)
+    for world in worlds:
+        world.reset([0, 1], [5, 6])
+    for _ in range(6):
+        speed, heading = rng.uniform(0, 5, (2, 4)), rng.uniform(-np.pi, np.pi, (2, 4))
+        for world in worlds:
+            world.step(speed, heading)
+        levels, reporting_world = worlds[0], worlds[1]
+        np.testing.assert_array_equal(levels.measured_level, reporting_world.measured_level)
+        assert np.isnan(levels.measured_sinr_db).all()
+        reported = reporting_world.measured_sinr_db[reporting_world.measured]
+        assert np.isfinite(reported).all()
+        np.testing.assert_array_equal(reported * 2, np.round(reported * 2))
+        radio = RadioModel(reporting)
+        level = reporting_world.measured_level[reporting_world.measured]
+        assert np.all(radio.level_of(reported - 0.25) <= level)
+        assert np.all(level <= radio.level_of(reported + 0.25))
+        truth = radio.evaluate(reporting_world.measured_xy[reporting_world.measured],
+                               radio.default_jammer).sinr_db
+        assert np.abs(reported - truth).max() < 6 * reporting.uav.measurement_noise_db + 0.25

@@ -408,7 +408,8 @@ class AgentService:
     def _measure(self, observation: AgentObservation) -> None:
         """Queue for upload what the receiver reported along the step, the same reports
         (de-duplicated by the same rule) as an in-process evaluation uploads."""
-        taken = self._kept(observation.measured, observation.step, time.time())
+        taken = self._kept(observation.measured, observation.measured_db, observation.step,
+                           time.time())
         if taken:
             self.outbox.add(taken, self.upload_every)
 
@@ -420,12 +421,15 @@ class AgentService:
         taken_at = measurement_round.flown_s - self.scenario.timing.step_s * (
             1 - np.arange(1, count + 1) / max(count, 1))
         self.uploader.send_round(
-            self._kept(measurement_round.measured, measurement_round.step, taken_at),
+            self._kept(measurement_round.measured, measurement_round.measured_db,
+                       measurement_round.step, taken_at),
             measurement_round.round, ROUND_RECEIPT_S)
 
-    def _kept(self, measured: list, step: int, taken_at: float | np.ndarray) -> list[tuple]:
-        """The records of the reports ``measured`` (x, y, level) that the spot filter keeps,
-        each taken at ``taken_at`` (one time, or one per report)."""
+    def _kept(self, measured: list, measured_db: list, step: int,
+              taken_at: float | np.ndarray) -> list[tuple]:
+        """The records of the reports ``measured`` (x, y, level), with their SINRs
+        ``measured_db`` where the receiver reports them, that the spot filter keeps, each
+        taken at ``taken_at`` (one time, or one per report)."""
         if not measured:
             return []
         reports = np.array(measured, dtype=np.float64)
@@ -435,12 +439,15 @@ class AgentService:
             return []
         features = scenario_features(self.scenario, reports[kept, :2])
         times = np.broadcast_to(np.asarray(taken_at, dtype=np.float64), kept.shape)[kept]
+        sinr_db = (np.asarray(measured_db)[kept].tolist() if measured_db
+                   else [None] * int(kept.sum()))
         # Records as the outbox holds them, not models: the agent's own numbers, a few a step,
         # and the cloud checks every measurement on receipt (MeasurementSpec).
         return [(f"{self.id_prefix}{next(self.measured)}", self.source, step, when,
-                 row.tobytes(), level)
-                for row, level, when in zip(features.astype(FEATURES_DTYPE, copy=False),
-                                            levels[kept].tolist(), times.tolist(), strict=True)]
+                 row.tobytes(), level, db)
+                for row, level, when, db in zip(features.astype(FEATURES_DTYPE, copy=False),
+                                                levels[kept].tolist(), times.tolist(), sinr_db,
+                                                strict=True)]
 
 
 def join(session, topics: Topics, stop: threading.Event, log: logging.Logger) -> int | None:

@@ -100,8 +100,8 @@ def _features(data: bytes) -> list[float]:
 
 def _measurement_row(record: tuple) -> tuple:
     """An outbox's record as Measurement's field values: the features as floats."""
-    ident, source, step, taken_at, features, level = record
-    return ident, source, step, taken_at, _features(features), level
+    ident, source, step, taken_at, features, level, sinr_db = record
+    return ident, source, step, taken_at, _features(features), level, sinr_db
 
 
 def _mark_frame(ledger: Ledger) -> bytes:
@@ -119,10 +119,12 @@ def _decode(payload: bytes) -> Ledger | tuple[int, tuple]:
                       duplicates=duplicates)
     if kind != _MEASUREMENT:
         raise ValueError(f"unknown record kind {kind!r}")
-    number, ident, source, step, taken_at, features, level = fields
+    # An outbox written before reports carried the SINR holds level reports: None.
+    number, ident, source, step, taken_at, features, level, sinr_db = (
+        fields if len(fields) == 8 else (*fields, None))
     m = Measurement(id=ident, source=source, step=step, time=taken_at,
-                    features=_features(features), level=level)
-    return int(number), (m.id, m.source, m.step, m.time, features, m.level)
+                    features=_features(features), level=level, sinr_db=sinr_db)
+    return int(number), (m.id, m.source, m.step, m.time, features, m.level, m.sinr_db)
 
 
 def outbox_path(directory: Path, uav: int) -> Path:

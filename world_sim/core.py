@@ -170,6 +170,7 @@ class VectorWorld:
         samples = scenario.uav.measurements_per_step
         self.measured_xy = np.zeros((e, j, samples, 2))
         self.measured_level = np.zeros((e, j, samples), dtype=np.int8)
+        self.measured_sinr_db = np.full((e, j, samples), np.nan)  # NaN: levels only
         self.measured = np.zeros((e, j), dtype=bool)
         self._receiver_noise = [np.random.default_rng(0) for _ in range(e)]
         default = self.radio.default_jammer
@@ -234,9 +235,10 @@ class VectorWorld:
         # Every UAV's receiver noise is drawn, so that each episode's stream of draws does not
         # depend on when its other UAVs ended their missions.
         sinr_db = self._radio_of_active(self.measured_xy, active).sinr_db
-        self.measured_level = np.stack([
-            self.radio.measured_levels(sinr_db[env], self._receiver_noise[env])
-            for env in range(self.num_envs)])
+        reports = [self.radio.measured_reports(sinr_db[env], self._receiver_noise[env])
+                   for env in range(self.num_envs)]
+        self.measured_level = np.stack([report.level for report in reports])
+        self.measured_sinr_db = np.stack([report.sinr_db for report in reports])
         self.measured = active.copy()
 
     def _radio_of_active(self, xy: np.ndarray, active: np.ndarray) -> RadioReading:

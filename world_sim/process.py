@@ -416,9 +416,10 @@ class WorldService:
         if not measured:
             return True
         for uav in measured:
+            reports, reports_db = self._reports(uav)
             self.round_pubs[uav].put(encode(MeasurementRound(
                 round=number, episode=self.episode, step=int(w.steps[0]), uav=uav,
-                flown_s=self.flown_s, measured=self._reports(uav))))
+                flown_s=self.flown_s, measured=reports, measured_db=reports_db)))
         live = self.mailbox.live()
         self.opened_pub.put(encode(RoundOpened(round=number, flown_s=self.flown_s,
                                                uavs=[uav for uav in measured if uav in live])))
@@ -448,19 +449,22 @@ class WorldService:
         observation, relevant = fleet_observation(w, self.scenario)
         flown = self.rounds.flown_at(self.round_base + self.steps)
         for uav in sorted(active):
+            reports, reports_db = ([], []) if self.config.cloud_clock else self._reports(uav)
             self.observation_pubs[uav].put(encode(AgentObservation.of_row(
-                observation, uav, self.episode, uav,
-                [] if self.config.cloud_clock else self._reports(uav), relevant[uav],
+                observation, uav, self.episode, uav, reports, reports_db, relevant[uav],
                 self.next_destinations[uav], flown)))
         self._publish_state()
 
-    def _reports(self, uav: int) -> list[tuple[float, float, int]]:
-        """What UAV ``uav``'s receiver reported along its last step (none at a start)."""
+    def _reports(self, uav: int) -> tuple[list[tuple[float, float, int]], list[float]]:
+        """What UAV ``uav``'s receiver reported along its last step (none at a start): each
+        report's place and level, and their SINRs where the receiver reports them."""
         w = self.world
         if not w.measured[0, uav]:
-            return []
-        return [(x, y, level) for (x, y), level in zip(
+            return [], []
+        reports = [(x, y, level) for (x, y), level in zip(
             w.measured_xy[0, uav].tolist(), w.measured_level[0, uav].tolist(), strict=True)]
+        reported_db = w.measured_sinr_db[0, uav]
+        return reports, ([] if np.isnan(reported_db).all() else reported_db.tolist())
 
     def _publish_event(self, event) -> None:
         bus.publish_event(self.session, self.topics, event)

@@ -1,0 +1,123 @@
+"""What UAVs measured with no jammer, cell by cell: the cloud's reference for dB reports.
+
+Where receivers report the SINR itself (``uav.report = "db"``), the no-jammer map learned from
+a survey says little of it: a level classifier, whose level bands are 0.8 dB to tens of dB
+wide, and in icc2021-shadowed wrong on 16 % of the area. What UAVs measured at the same spot
+before is sharper: the mean of k reports in a cell of ``online_map.reference_cell_m`` knows
+the no-jammer SINR there to sqrt(s^2 / k + r^2), s^2 the spread of reports within a cell
+(the receiver's noise and the field's roughness across the cell) and r^2 = s^2 less the
+receiver's datasheet noise, the roughness alone.
+
+A report enters only once it is ``online_map.reference_delay_s`` of flight old with no change
+detected meanwhile and no jammer believed (the survey map in service): a jammer that appears
+is then caught by the detector before its reports enter, and those are dropped. A jammer
+present from the start and never detected is part of the reference, as it is of the map.
+
+Against this reference the detector weighs a dB report by a one-sided test of a loss of
+``online_map.detection_shift_db`` (``shift_evidence``), and the jammer estimate reads each
+report's no-jammer SINR from it where it has one.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cloud_service.jammer_estimation import OUTLIER_SHARE, SinrBelief
+from shared.scenario import Scenario
+
+# Reports within a cell, at least, before its spread counts towards the pooled one.
+_SPREAD_MIN_REPORTS = 2
+
+
+class SinrReference:
+    """Sums of the no-jammer dB reports in each cell of the area, and the reports that wait
+    their turn to enter (``offer``, ``commit``, ``discard_since``)."""
+
+    def __init__(self, scenario: Scenario):
+        area, online = scenario.area, scenario.online_map
+        self.cell_m = online.reference_cell_m
+        self.delay_s = online.reference_delay_s
+        self.noise_db = scenario.uav.measurement_noise_db
+        self.origin = np.array([area.x_min, area.y_min])
+        self.shape = (math.ceil((area.y_max - area.y_min) / self.cell_m),
+                      math.ceil((area.x_max - area.x_min) / self.cell_m))
+        self.sums = np.zeros(self.shape)
+        self.squares = np.zeros(self.shape)
+        self.counts = np.zeros(self.shape, dtype=np.int64)
+        self._pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def offer(self, xy: np.ndarray, sinr_db: np.ndarray, times: np.ndarray) -> None:
+        """Reports taken with no jammer believed, to enter once ``commit`` finds them old
+        enough; those without an SINR or outside the area are left out."""
+        cells, inside = self._cells(xy)
+        keep = inside & np.isfinite(sinr_db)
+        if keep.any():
+            self._pending.append((cells[keep], np.asarray(sinr_db)[keep],
+                                  np.asarray(times, dtype=np.float64)[keep]))
+
+    def commit(self, now: float) -> None:
+        """Enter the pending reports taken at least ``delay_s`` before ``now``."""
+        waiting = []
+        for cells, sinr_db, times in self._pending:
+            due = times <= now - self.delay_s
+            rows, cols = cells[due].T
+            np.add.at(self.sums, (rows, cols), sinr_db[due])
+            np.add.at(self.squares, (rows, cols), sinr_db[due] ** 2)
+            np.add.at(self.counts, (rows, cols), 1)
+            if not due.all():
+                waiting.append((cells[~due], sinr_db[~due], times[~due]))
+        self._pending = waiting
+
+    def discard_since(self, start: float) -> None:
+        """Drop the pending reports taken at or after ``start``: a change began then."""
+        self._pending = [(cells[times < start], sinr_db[times < start], times[times < start])
+                         for cells, sinr_db, times in self._pending]
+
+    @property
+    def reports(self) -> int:
+        return int(self.counts.sum())
+
+    def spread_db(self) -> float:
+        """The pooled sd of reports about their cell's mean; the receiver's datasheet noise
+        until cells hold enough reports to say."""
+        counted = self.counts >= _SPREAD_MIN_REPORTS
+        if not counted.any():
+            return self.noise_db
+        k = self.counts[counted]
+        deviations = self.squares[counted] - self.sums[counted] ** 2 / k
+        return math.sqrt(max(float(deviations.sum()) / float((k - 1).sum()), 0.0))
+
+    def at(self, xy: np.ndarray) -> SinrBelief:
+        """The no-jammer SINR at points ``xy`` (n, 2) by the reports of their cells: mean and
+        sd, NaN where a cell holds none (or the point lies outside the area)."""
+        cells, inside = self._cells(xy)
+        rows, cols = np.where(inside[:, None], cells, 0).T
+        count = np.where(inside, self.counts[rows, cols], 0)
+        spread = self.spread_db()
+        roughness_sq = max(spread**2 - self.noise_db**2, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mean = np.where(count > 0, self.sums[rows, cols] / count, np.nan)
+            sd = np.where(count > 0, np.sqrt(spread**2 / count + roughness_sq), np.nan)
+        return SinrBelief(mean, sd)
+
+    def _cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each point's cell (row, col) and whether it lies inside the area."""
+        cells = np.floor((np.asarray(xy, dtype=np.float64).reshape(-1, 2) - self.origin)
+                         / self.cell_m)[:, ::-1]
+        with np.errstate(invalid="ignore"):
+            inside = np.isfinite(cells).all(axis=1) & (cells >= 0).all(axis=1) & (
+                cells < self.shape).all(axis=1)
+        return np.where(inside[:, None], cells, 0).astype(np.int64), inside
+
+
+def shift_evidence(reference: SinrBelief, reported_db: np.ndarray, noise_db: float,
+                   shift_db: float) -> np.ndarray:
+    """Nats each dB report weighs for its no-jammer SINR having dropped by ``shift_db``
+    against none: log N(v; m - shift, sd) / N(v; m, sd), sd^2 the reference's spread plus
+    the receiver's ``noise_db``. At most log(1 / OUTLIER_SHARE), as one report in a hundred
+    may contradict any model; NaN where the report or the reference has no SINR."""
+    variance = reference.sd_db**2 + noise_db**2
+    evidence = shift_db * (reference.mean_db - reported_db - shift_db / 2.0) / variance
+    return np.minimum(evidence, -math.log(OUTLIER_SHARE))

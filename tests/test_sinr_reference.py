@@ -1,0 +1,140 @@
+"""The cloud's use of dB reports: the no-jammer reference, the detector's test of a loss, the
+likelihood of a dB report in the jammer estimate."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from cloud_service.jammer_estimation import (
+    NO_JAMMER,
+    OUTLIER_SHARE,
+    SinrBelief,
+    _ReportTables,
+    estimate_jammer,
+    sinr_report_probabilities,
+)
+from cloud_service.sinr_mapping import ChangeDetector
+from cloud_service.sinr_reference import SinrReference, shift_evidence
+from shared.radio import JammerParams, RadioModel
+from shared.scenario import load_scenario
+
+
+@pytest.fixture(scope="module")
+def reporting():
+    """The shadowed world with receivers that report the SINR."""
+    return load_scenario("icc2021-shadowed").changed({"uav.report": "db"})
+
+
+def test_the_reference_averages_each_cells_reports_once_they_are_old_enough(reporting):
+    reference = SinrReference(reporting)
+    cell = reporting.online_map.reference_cell_m
+    here = np.array([[0.25, 0.25], [0.5, 0.75], [0.1, 0.9], [10.2, 3.3], [80.0, 0.0]])
+    assert cell == 1.0 and reporting.online_map.reference_delay_s == 10.0
+    reference.offer(here, np.array([-2.0, -3.0, -4.0, 6.5, 1.0]), np.array([0, 0, 0, 0, 0.0]))
+    reference.offer(here[:1], np.array([np.nan]), np.array([1.0]))  # a level report
+    reference.commit(9.0)
+    assert reference.reports == 0  # not old enough yet
+    assert np.isnan(reference.at(here).mean_db).all()
+    reference.commit(10.0)
+    assert reference.reports == 4  # the fifth lies outside the area
+    belief = reference.at(np.array([[0.9, 0.1], [10.9, 3.9], [1.5, 0.5], [80.0, 0.0]]))
+    np.testing.assert_allclose(belief.mean_db[:2], [-3.0, 6.5], rtol=0, atol=1e-12)
+    assert np.isnan(belief.mean_db[2:]).all() and np.isnan(belief.sd_db[2:]).all()
+    # The pooled spread: one cell of three reports, sd 1 dB about their mean; the roughness
+    # is what it holds beyond the receiver's 1 dB of noise: none.
+    assert reference.spread_db() == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(belief.sd_db[:2], [math.sqrt(1 / 3), 1.0], rtol=1e-12)
+
+
+def test_a_change_drops_the_reports_still_waiting_since_it_began(reporting):
+    reference = SinrReference(reporting)
+    spot = np.array([[5.0, 5.0]])
+    for t in range(20):
+        reference.offer(spot, np.array([float(t)]), np.array([float(t)]))
+    reference.discard_since(12.0)
+    reference.commit(100.0)
+    assert reference.reports == 12
+    assert reference.at(spot).mean_db[0] == pytest.approx(np.mean(np.arange(12.0)), abs=1e-12)
+
+
+def test_shift_evidence_is_the_gaussian_log_likelihood_ratio_capped_for_outliers():
+    reference = SinrBelief(np.array([0.0, 0.0, 0.0, np.nan]), np.array([0.5, 0.5, 0.5, 0.5]))
+    reported = np.array([-1.0, 1.0, -40.0, 0.0])
+    evidence = shift_evidence(reference, reported, 1.0, 1.0)
+    sd = math.sqrt(1.25)
+    expected = norm.logpdf(-1.0, -1.0, sd) - norm.logpdf(-1.0, 0.0, sd)
+    assert evidence[0] == pytest.approx(expected, abs=1e-12)
+    assert evidence[1] == pytest.approx(norm.logpdf(1.0, -1.0, sd) - norm.logpdf(1.0, 0.0, sd),
+                                        abs=1e-12)
+    assert evidence[2] == pytest.approx(-math.log(OUTLIER_SHARE), abs=1e-12)
+    assert np.isnan(evidence[3])
+
+
+def test_the_detector_weighs_a_db_report_by_its_evidence_and_a_level_report_as_before():
+    detector = ChangeDetector(levels=3, threshold=5.0, floor=0.05)
+    probability = np.full(4, 1.0)  # the map expected every level it was given
+    check = detector.update(probability, ["a"] * 4, np.arange(4.0),
+                            np.array([np.nan, 2.0, 2.0, np.nan]))
+    # log(1/3) from 0 stays at 0 (the excursion starts at the next report), then 2 + 2,
+    # then log(1/3) again.
+    assert check.statistic == pytest.approx(4.0 + math.log(1 / 3), abs=1e-12)
+    assert not check.fired
+    check = detector.update(probability[:2], ["a"] * 2, np.array([4.0, 5.0]),
+                            np.array([3.0, 3.0]))
+    assert check.fired and check.t == 4.0 and detector.change_start == 1.0
+
+
+def test_a_db_reports_likelihood_is_its_report_steps_interval(reporting):
+    """The estimate's table of a dB report against the normal interval probability, and
+    the withdrawal's probability of one, by scipy, with the outlier share."""
+    radio = RadioModel(reporting, shadowed=False)
+    tables = _ReportTables(radio.level_edges_db, np.array([1.3, 2.0]), OUTLIER_SHARE, 0.5)
+    believed = np.array([-1.0, 3.0, 10.0])
+    reported = np.array([-2.5, 3.0, -30.0])
+    rows = np.array([0, 1, 1])
+    got = tables.log_probability(believed, np.zeros(3, dtype=np.int64), rows, reported)
+    sd = np.array([1.3, 2.0, 2.0])
+    interval = norm.cdf((reported + 0.25 - believed) / sd) - norm.cdf(
+        (reported - 0.25 - believed) / sd)
+    expected = np.log((1 - OUTLIER_SHARE) * interval + OUTLIER_SHARE * 0.5 / 40.0)
+    # The table's SINR offsets lie 0.05 dB apart: within the interval probability's change
+    # over half a step.
+    np.testing.assert_allclose(got, expected, atol=0.03)
+    # A level report reads the level table.
+    levels = tables.log_probability(believed, np.array([2, 2, 0]), rows, np.full(3, np.nan))
+    assert levels[2] == pytest.approx(math.log((1 - OUTLIER_SHARE) * norm.cdf((-3.0 - 10) / 2)
+                                               + OUTLIER_SHARE / 3), abs=0.01)
+    xy = np.array([[0.0, 0.0], [20.0, 5.0]])
+    belief = SinrBelief(np.array([1.0, 4.0]), np.array([0.5, 0.5]))
+    probability = sinr_report_probabilities(reporting, xy, np.array([0.5, 4.0]), NO_JAMMER,
+                                            belief, 1.0)
+    spread = math.hypot(0.5, 1.0)
+    interval = (norm.cdf((np.array([0.75, 4.25]) - [1.0, 4.0]) / spread)
+                - norm.cdf((np.array([0.25, 3.75]) - [1.0, 4.0]) / spread))
+    np.testing.assert_allclose(probability, (1 - OUTLIER_SHARE) * interval
+                               + OUTLIER_SHARE * 0.5 / 40.0, rtol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_db_reports_place_a_jammer_the_levels_of_the_same_reports_cannot(seed):
+    """In the idealized world the reports' SINRs see the jammer's loss wherever it is more
+    than a few tenths of a dB; their levels only where it moves a level edge. From the same
+    150 noisy reports, the dB estimate converges within a few metres (its sd at most 10 m,
+    the estimate's rule), the levels' does not."""
+    scenario = load_scenario("icc2021").changed({"uav.report": "db",
+                                                 "uav.measurement_noise_db": 0.5})
+    truth = RadioModel(scenario)
+    jammer = JammerParams(12.0, -8.0, 0.5, scenario.jammer.height_m)
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-45, 45, (150, 2))
+    reports = truth.measured_reports(truth.evaluate(xy, jammer).sinr_db, rng)
+    by_db = estimate_jammer(scenario, xy, reports.level, reported_db=reports.sinr_db,
+                            shadowing_sigma_db=0.05)
+    by_level = estimate_jammer(scenario, xy, reports.level, shadowing_sigma_db=0.05)
+    assert by_db is not None and by_db.present
+    assert math.hypot(by_db.x - 12.0, by_db.y + 8.0) < 2 * max(by_db.sd_x_m, by_db.sd_y_m)
+    assert by_level is None
