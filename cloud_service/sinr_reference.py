@@ -93,7 +93,7 @@ class SinrReference:
         """The no-jammer SINR at points ``xy`` (n, 2) by the reports of their cells: mean and
         sd, NaN where a cell holds none (or the point lies outside the area)."""
         cells, inside = self._cells(xy)
-        rows, cols = np.where(inside[:, None], cells, 0).T
+        rows, cols = cells.T
         count = np.where(inside, self.counts[rows, cols], 0)
         spread = self.spread_db()
         roughness_sq = max(spread**2 - self.noise_db**2, 0.0)
