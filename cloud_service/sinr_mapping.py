@@ -407,6 +407,8 @@ class OnlineSinrMapper:
         self._change: _Change | None = None  # set while a change is being handled
         self._busy = False
         self._worker: threading.Thread | None = None
+        # Set by ``close``: work under way stops at its next check and publishes nothing.
+        self._closing = threading.Event()
         survey_sigma_db = self._shadowing_sigma(self._prior_positions())
         # How far reports may lie from the ideal model where the survey map keeps to it so
         # closely that the model is the better no-jammer map (None elsewhere): a property of
@@ -683,6 +685,8 @@ class OnlineSinrMapper:
             no_jammer_db=self.reference.at(xy),
             report_sigma_db=(REPORT_SIGMA_DB if self._model_spread_db is None
                              else self._model_spread_db))
+        if self._closing.is_set():
+            return
         estimate = located.estimate
         change.tried_at = len(data)
         change.tries += 1
@@ -736,7 +740,10 @@ class OnlineSinrMapper:
             features, levels, self.level_count, network=self._base,
             steps=config.provisional_steps if provisional else config.steps,
             max_seconds=config.max_seconds, target_accuracy=config.target_accuracy,
-            holdout=config.holdout, seed=self._seed + self._version + 1)
+            holdout=config.holdout, seed=self._seed + self._version + 1,
+            stop=self._closing.is_set)
+        if self._closing.is_set():
+            return
         change.fitted_at = len(data)
         weights = to_bytes(result.network)
         with self._lock:
@@ -855,6 +862,9 @@ class OnlineSinrMapper:
         return not self._busy
 
     def close(self) -> None:
+        """Stop the work under way (a fit at its next step, an estimate once it returns) and
+        close the memory: a cloud that is told to stop stops within about a second."""
+        self._closing.set()
         self.wait()
         self.memory.close()
 

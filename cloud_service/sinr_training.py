@@ -66,12 +66,14 @@ def train_sinr_map(
     holdout: float = 0.2,
     seed: int = 0,
     progress: Callable[[int, float], None] | None = None,
+    stop: Callable[[], bool] | None = None,
 ) -> TrainResult:
     """Fit a SINR-mapping network to measurements ``features`` (n, F) -> ``levels`` (n,).
 
     A share ``holdout`` of the rows is kept out of training to measure accuracy. Training
     stops after ``steps`` mini-batches, or once ``max_seconds`` have passed, or as soon as the
-    held-out accuracy reaches ``target_accuracy`` (checked every 100 steps).
+    held-out accuracy reaches ``target_accuracy`` (checked every 100 steps), or at once when
+    ``stop()`` says so (a cloud shutting down).
 
     Without ``network`` a fresh one is built and its standardization fitted on the training
     rows. With ``network`` (the current map) training continues from a copy of it, keeping
@@ -130,6 +132,8 @@ def train_sinr_map(
                 break
             if max_seconds is not None and wall.perf_counter() - started >= max_seconds:
                 break
+        if stop is not None and stop():
+            break
     return TrainResult(trained, accuracy, done, wall.perf_counter() - started)
 
 

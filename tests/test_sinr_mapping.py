@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import sqlite3
@@ -842,3 +843,15 @@ def test_a_jammer_seen_only_before_its_detection_is_never_served(mapping_scenari
     else:
         assert published == [] and mapper.current_network() is survey
         assert "jammer_estimated" not in _types(mapper)
+
+
+def test_a_fit_stops_at_the_next_step_once_told_to(mapping_scenario, no_jammer_map):
+    """A cloud told to stop does not wait for a fit of a billion steps: ``stop`` is asked
+    after every step, and the fit ends at the first True, with the steps done so far."""
+    network, _ = no_jammer_map
+    xy = np.random.default_rng(4).uniform(-50, 50, (300, 2))
+    features = scenario_features(mapping_scenario, xy)
+    asked = itertools.count(1)
+    result = train_sinr_map(features, predict_levels(network, features), network.levels,
+                            network=network, steps=10**9, stop=lambda: next(asked) >= 7)
+    assert result.steps == 7
