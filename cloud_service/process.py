@@ -61,14 +61,8 @@ from shared.messages import (
 )
 from shared.radio import RadioModel
 from shared.scenario import Scenario, ScenarioError, load_scenario
-from shared.shipped import (
-    DEFAULT_VALUE_NET,
-    EXTENDED_VALUE_NET,
-    VALUE_NET_HELP,
-    foreign_survey_map,
-    sinr_map_for,
-    value_net_path,
-)
+from shared.shipped import DEFAULT_VALUE_NET, EXTENDED_VALUE_NET, VALUE_NET_HELP, value_net_path
+from shared.survey_maps import foreign_survey_map, sinr_map_for
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
 
 ROLE = "cloud"

@@ -52,7 +52,7 @@ from cloud_service.rollout import (
     run_episodes,
 )
 from cloud_service.torch_networks import TorchValueNetwork
-from planning import lookahead_policy
+from planning.chosen import lookahead_policy
 from planning.features import METHODS, MethodOptions, joint_state_size, observation_state
 from planning.networks import (
     ValueNetwork,

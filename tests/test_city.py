@@ -11,7 +11,8 @@ from shared.observation import Observation
 from shared.outcomes import Outcome
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
-from shared.shipped import EXTENDED_VALUE_NET, SINR_MAP_NO_JAMMER_CITY, sinr_map_for
+from shared.shipped import EXTENDED_VALUE_NET, SINR_MAP_NO_JAMMER_CITY
+from shared.survey_maps import sinr_map_for
 from tests import float32_bounds as bounds
 from world_sim.core import VectorWorld, near_pairs
 

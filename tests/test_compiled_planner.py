@@ -18,7 +18,8 @@ import torch
 
 from cloud_service.rollout import LookaheadController, fleet_observation, perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
-from planning import PLANNER_VARIABLE, PlannerError, lookahead_policy
+from planning import PLANNER_VARIABLE, PlannerError
+from planning.chosen import lookahead_policy
 from planning.features import (
     ABSENT_DISTANCE,
     EXTENDED_METHOD,

@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from planning import PlannerError, lookahead_policy, require_planner
+from planning import PlannerError
+from planning.chosen import lookahead_policy, require_planner
 from planning.maps import LevelRaster, RasterMap, sinr_network_raster
 from planning.networks import WeightsError, from_bytes
 from planning.reference import LookaheadPolicy
