@@ -17,6 +17,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from shared.kinematics import ActionSet, closest_approach, velocity_of
+from shared.neighbours import nearby_others
+from shared.observation import Observation, decision_reach
 from shared.outcomes import Outcome
 from shared.radio import JammerParams, RadioModel, RadioReading
 from shared.rewards import RewardModel
@@ -322,3 +324,15 @@ class VectorWorld:
         # hears nothing more from the world.
         self.measured &= ~finished
         return StepResult(reward, finished, ~self.active.any(axis=1))
+
+
+def fleet_observation(world: VectorWorld) -> Observation:
+    """What every UAV of the world observes, one row per UAV (env-major): of the others, only
+    those that can change its decision (``nearby_others``), so that a step costs O(J log J)."""
+    reach = float(decision_reach(world.scenario, world.radius.max()))
+    others = nearby_others(world.position, world.active,
+                           world.scenario.policy.observed_uavs, reach)
+    return Observation.of_fleet(
+        world.position, world.velocity, world.heading, world.destination, world.radius,
+        world.max_speed, world.level, world.below_steps, world.active, world.steps, others,
+    )

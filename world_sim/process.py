@@ -53,14 +53,13 @@ from shared.messages import (
     encode,
     outcome_labels,
 )
-from shared.neighbours import nearby_others
 from shared.observation import Observation, decision_reach, decision_relevant
 from shared.paper import JammerSetting
 from shared.radio import RadioModel
 from shared.scenario import MAX_UAVS, Scenario, ScenarioError, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
 from world_sim.cloud_rounds import CloudRounds
-from world_sim.core import VectorWorld, episode_seed
+from world_sim.core import VectorWorld, episode_seed, fleet_observation
 from world_sim.jammers import swapping_jammers
 
 ROLE = "world"
@@ -233,18 +232,14 @@ class JammerDesk:
             return taken
 
 
-def fleet_observation(world: VectorWorld, scenario: Scenario) -> tuple[Observation, np.ndarray]:
-    """What every UAV of the world's one environment observes now, as the in-process
-    evaluation sees it, and which of those others (J, M) its agent is sent: only the ones
-    that can change its decision, so that a step's traffic grows with J, not J^2."""
-    w, count = world, scenario.policy.observed_uavs
-    nearby = nearby_others(w.position, w.active, count,
-                           float(decision_reach(scenario, w.radius.max())))
-    observation = Observation.of_fleet(
-        w.position, w.velocity, w.heading, w.destination, w.radius, w.max_speed, w.level,
-        w.below_steps, w.active, w.steps, nearby)
-    return observation, decision_relevant(observation, count,
-                                          decision_reach(scenario, observation.radius))
+def observation_sent(world: VectorWorld) -> tuple[Observation, np.ndarray]:
+    """What every UAV of the world's one environment observes now (``fleet_observation``,
+    as the in-process evaluation sees it), and which of those others (J, M) its agent is
+    sent: only the ones that can change its decision, so that a step's traffic grows with J,
+    not J^2."""
+    observation = fleet_observation(world)
+    return observation, decision_relevant(observation, world.scenario.policy.observed_uavs,
+                                          decision_reach(world.scenario, observation.radius))
 
 
 class WorldService:
@@ -446,7 +441,7 @@ class WorldService:
             # known here, or its first observation could be lost.
             if uav < self.config.uavs and not bus.wait_matching(self.observation_pubs[uav], 2.0):
                 self.log.warning("agent %d is live but not subscribed", uav)
-        observation, relevant = fleet_observation(w, self.scenario)
+        observation, relevant = observation_sent(w)
         flown = self.rounds.flown_at(self.round_base + self.steps)
         for uav in sorted(active):
             reports, reports_db = ([], []) if self.config.cloud_clock else self._reports(uav)
