@@ -32,7 +32,7 @@ from shared.measurements import MeasurementBatch, MeasurementSpec, scenario_feat
 from shared.paper import JammerSetting, jammer_params
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
-from shared.shipped import sinr_map_for
+from shared.survey_maps import sinr_map_for
 from world_sim.jammers import random_jammer
 
 UAVS = 4

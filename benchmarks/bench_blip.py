@@ -22,7 +22,7 @@ from planning.networks import load_network
 from shared.measurements import MeasurementSpec
 from shared.paper import TABLE_I_JAMMERS, JammerSetting, jammer_params
 from shared.scenario import Scenario, load_scenario
-from shared.shipped import sinr_map_for
+from shared.survey_maps import sinr_map_for
 from world_sim.jammers import random_jammer
 
 SCENARIOS = ("icc2021", "icc2021-shadowed")

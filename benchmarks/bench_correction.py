@@ -41,7 +41,8 @@ from shared.measurements import MeasurementBatch, scenario_features
 from shared.paper import JammerSetting, jammer_params
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
-from shared.shipped import sinr_map_for, value_net_for
+from shared.shipped import value_net_for
+from shared.survey_maps import sinr_map_for
 from world_sim.jammers import random_jammer
 
 SETTINGS = (JammerSetting(0.0, 0.0, 1.0), JammerSetting(-30.0, 10.0, 1.0))

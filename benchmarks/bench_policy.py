@@ -17,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 
 from benchmarks.common import Figure, best_rate
-from cloud_service.rollout import LookaheadController, RasterMaps, fleet_observation, perfect_maps
+from cloud_service.rollout import LookaheadController, RasterMaps, perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
 from planning.features import joint_state_size
 from planning.lookahead import CompiledLookahead
@@ -28,7 +28,7 @@ from shared.paper import TABLE_I_JAMMERS, jammer_params
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
 from shared.shipped import EXTENDED_VALUE_NET
-from world_sim.core import VectorWorld, episode_seed
+from world_sim.core import VectorWorld, episode_seed, fleet_observation
 
 PLANNERS = {"reference": LookaheadPolicy, "compiled": CompiledLookahead}
 

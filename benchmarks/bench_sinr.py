@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import Figure, best_rate
-from cloud_service.sinr_mapping import simulated_measurements
+from cloud_service.simulated_measurements import simulated_measurements
 from cloud_service.sinr_memory import SinrMemory
 from shared.measurements import MeasurementSpec
 from shared.scenario import Scenario, load_scenario

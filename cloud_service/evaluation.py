@@ -33,7 +33,7 @@ from cloud_service.rollout import (
 from cloud_service.rounds import delay_rounds
 from cloud_service.sinr_mapping import OnlineSinrMapper, RetrainConfig
 from cloud_service.sinr_memory import SinrMemory
-from planning import lookahead_policy
+from planning.chosen import lookahead_policy
 from planning.maps import RasterMap, sinr_network_raster
 from planning.networks import SinrMapNetwork, WeightsError, load_network
 from planning.reference import LookaheadPolicy
@@ -46,7 +46,8 @@ from shared.measurements import (
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting
 from shared.scenario import MAX_UAVS, Scenario
-from shared.shipped import NoSurveyMapError, sinr_map_for, value_net_for
+from shared.shipped import value_net_for
+from shared.survey_maps import NoSurveyMapError, sinr_map_for
 from world_sim.core import VectorWorld
 from world_sim.jammers import JammerSchedule, swapping_jammers
 

@@ -18,13 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from cloud_service.sinr_mapping import (
-    RECENT_KEPT,
-    ChangeDetector,
-    OnlineSinrMapper,
-    RetrainConfig,
-    labelled_batch,
-)
+from cloud_service.simulated_measurements import labelled_batch
+from cloud_service.sinr_mapping import RECENT_KEPT, ChangeDetector, OnlineSinrMapper, RetrainConfig
 from cloud_service.sinr_memory import SinrMemory
 from planning.networks import SinrMapNetwork, predict_levels
 from shared.measurements import MeasurementBatch, MeasurementSpec, SpotFilter, scenario_features

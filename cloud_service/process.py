@@ -30,6 +30,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import zenoh
+
 from cloud_service.jammer_estimation import JammerEstimate as EstimatedJammer
 from cloud_service.rollout import RasterMaps
 from cloud_service.rounds import RoundDesk, delay_rounds
@@ -60,15 +62,9 @@ from shared.messages import (
     encode,
 )
 from shared.radio import RadioModel
-from shared.scenario import Scenario, ScenarioError, load_scenario
-from shared.shipped import (
-    DEFAULT_VALUE_NET,
-    EXTENDED_VALUE_NET,
-    VALUE_NET_HELP,
-    foreign_survey_map,
-    sinr_map_for,
-    value_net_path,
-)
+from shared.scenario import Scenario, load_scenario
+from shared.shipped import DEFAULT_VALUE_NET, EXTENDED_VALUE_NET, VALUE_NET_HELP, value_net_path
+from shared.survey_maps import foreign_survey_map, sinr_map_for
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
 
 ROLE = "cloud"
@@ -473,42 +469,33 @@ def load_training(network: SinrMapNetwork, background: bool) -> None:
         load()
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    log = bus.setup_logging(ROLE)
-    try:
-        scenario = load_scenario(args.scenario)
-        if args.cloud_latency is not None:
-            scenario = scenario.changed({"online_map.cloud_latency_s": args.cloud_latency})
-        if args.clock == "lockstep" and args.map != "online":
-            raise ValueError("--clock lockstep is the online map's: --map perfect and outdated "
-                             "follow the world's jammer instead")
-        jammer = None
-        if not args.no_jammer:
-            default = RadioModel.jammer_of(scenario)
-            if args.jammer is not None:
-                jammer = JammerInfo.parse(args.jammer, scenario.jammer.height_m)
-            elif default is not None:
-                jammer = JammerInfo(x=default.x, y=default.y, power_w=default.power_w,
-                                    height_m=default.height_m)
-        retrain = None
-        if args.retrain_samples is not None:
-            if args.retrain_samples < 2:
-                raise ValueError("--retrain-samples must be at least 2")
-            retrain = RetrainConfig(min_samples=args.retrain_samples)
-        sinr_net = None  # resolved here, so that a world without one is refused before connecting
-        if args.map == "online":
-            sinr_net = Path(args.sinr_net) if args.sinr_net else sinr_map_for(scenario)
-        topics = Topics(args.prefix)
-        endpoint = endpoint_from(args.endpoint)
-        login = access.login_for(args.credentials, access.CLOUD)
-    except (ScenarioError, ValueError, bus.BusError) as exc:
-        print(f"cloud: error: {exc}", file=sys.stderr)
-        return 2
-    session, stop = bus.service_session("cloud", endpoint, login)
-    if session is None:
-        return 1
-    with session:
+def cloud_setup(args: argparse.Namespace) -> bus.ServiceSetup:
+    """The cloud the arguments ask for; a ValueError names the first wrong one."""
+    scenario = load_scenario(args.scenario)
+    if args.cloud_latency is not None:
+        scenario = scenario.changed({"online_map.cloud_latency_s": args.cloud_latency})
+    if args.clock == "lockstep" and args.map != "online":
+        raise ValueError("--clock lockstep is the online map's: --map perfect and outdated "
+                         "follow the world's jammer instead")
+    jammer = None
+    if not args.no_jammer:
+        default = RadioModel.jammer_of(scenario)
+        if args.jammer is not None:
+            jammer = JammerInfo.parse(args.jammer, scenario.jammer.height_m)
+        elif default is not None:
+            jammer = JammerInfo(x=default.x, y=default.y, power_w=default.power_w,
+                                height_m=default.height_m)
+    retrain = None
+    if args.retrain_samples is not None:
+        if args.retrain_samples < 2:
+            raise ValueError("--retrain-samples must be at least 2")
+        retrain = RetrainConfig(min_samples=args.retrain_samples)
+    sinr_net = None  # resolved here, so that a world without one is refused before connecting
+    if args.map == "online":
+        sinr_net = Path(args.sinr_net) if args.sinr_net else sinr_map_for(scenario)
+    topics = Topics(args.prefix)
+
+    def run(session: zenoh.Session, stop: threading.Event, log: logging.Logger) -> int:
         try:
             cloud = CloudService(session, topics, scenario, args.map, Path(args.run_dir), log,
                                  value_net=value_net_path(args.value_net),
@@ -516,12 +503,18 @@ def main(argv: list[str] | None = None) -> int:
                                  jammer=jammer, retrain=retrain,
                                  lockstep=args.clock == "lockstep")
         except (WeightsError, ValueError) as exc:
-            print(f"cloud: error: {exc}", file=sys.stderr)
-            return 2
+            return bus.bad_arguments(ROLE, exc)
         if cloud.mapper is not None:
             load_training(cloud.mapper.current_network(), background=cloud.rounds is None)
         cloud.run(stop)
-    return 0
+        return 0
+
+    return bus.ServiceSetup(endpoint_from(args.endpoint),
+                            access.login_for(args.credentials, access.CLOUD), run)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return bus.run_service(ROLE, build_parser(), cloud_setup, argv)
 
 
 if __name__ == "__main__":

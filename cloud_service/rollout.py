@@ -18,28 +18,14 @@ import numpy as np
 from planning.maps import MAP_SPACING_M, LevelRaster, RadioMap, RasterMap
 from planning.orca import orca_velocities, preferred_velocity_toward
 from planning.reference import LookaheadPolicy
-from shared.neighbours import nearby_others
-from shared.observation import Observation, decision_reach
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting, jammer_params
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
-from world_sim.core import StepResult, VectorWorld, episode_seed
+from world_sim.core import StepResult, VectorWorld, episode_seed, fleet_observation
 from world_sim.jammers import JammerSchedule
 
 MapFor = Callable[[VectorWorld, np.ndarray], RadioMap]
-
-
-def fleet_observation(world: VectorWorld) -> Observation:
-    """What every UAV of the world observes, one row per UAV (env-major): of the others, only
-    those that can change its decision (``nearby_others``), so that a step costs O(J log J)."""
-    reach = float(decision_reach(world.scenario, world.radius.max()))
-    others = nearby_others(world.position, world.active,
-                           world.scenario.policy.observed_uavs, reach)
-    return Observation.of_fleet(
-        world.position, world.velocity, world.heading, world.destination, world.radius,
-        world.max_speed, world.level, world.below_steps, world.active, world.steps, others,
-    )
 
 
 class RasterMaps:

@@ -1,13 +1,12 @@
 """Online SINR mapping in the cloud (paper Sec. III-C): train, watch, detect, adapt, publish.
 
-- ``train_sinr_map``: supervised training of the SINR-mapping network on measurements
-  (mini-batches of 200, Adam lr 5e-3, L2 1e-4: the paper's values).
+- ``train_sinr_map`` (in ``cloud_service.sinr_training``, apart as it needs torch): supervised
+  training of the SINR-mapping network on measurements (mini-batches of 200, Adam lr 5e-3,
+  L2 1e-4: the paper's values).
 - ``ChangeDetector``: the rule that declares a jammer change when one UAV's uploads keep
   contradicting the map.
 - ``OnlineSinrMapper``: memory + detector + jammer estimate + DNN refits + publication, with
   no transport of its own, so the bus shell around it stays thin.
-- ``simulated_measurements``: measurements as a UAV's receiver reports them (the world's
-  truth, noise included), for the command line, the benchmarks and the tests.
 
 K_n matters. The figures quoted here are for K_n = 12 (every GBS of icc2021). With K_n = 4
 the network of the paper's size tops out near 96 % without a jammer and near 90 % with one
@@ -47,79 +46,18 @@ from cloud_service.jammer_estimation import (
     sinr_beliefs,
     sinr_report_probabilities,
 )
+from cloud_service.simulated_measurements import uniform_positions
 from cloud_service.sinr_memory import SinrMemory, Uploads
 from cloud_service.sinr_reference import SinrReference, shift_evidence
 from planning.maps import MAP_SPACING_M, LevelRaster, sinr_network_raster
 from planning.networks import SinrMapNetwork, predict_probabilities, sha256, to_bytes
 from shared.measurements import MeasurementBatch, scenario_features
-from shared.radio import JammerParams, RadioModel
+from shared.radio import RadioModel
 from shared.scenario import Scenario
 
 TARGET_ACCURACY = 0.97  # the accuracy bar the online map is held to on fresh measurements
 
 
-def simulated_measurements(
-    scenario: Scenario,
-    jammer: JammerParams | None,
-    count: int,
-    rng: np.random.Generator,
-    *,
-    time: float = 0.0,
-    step: int = 0,
-    source: str = "sim",
-) -> MeasurementBatch:
-    """``count`` measurements at positions uniform over the area, labelled with the level a
-    UAV reports there under ``jammer``. Ids are random 64-bit numbers drawn from ``rng``:
-    unique in practice, and the same for the same seed."""
-    xy = uniform_positions(scenario, count, rng)
-    return measurements_at(scenario, RadioModel(scenario), jammer, xy, rng, time=time,
-                           step=step, source=source)
-
-
-def uniform_positions(scenario: Scenario, count: int, rng: np.random.Generator) -> np.ndarray:
-    area = scenario.area
-    return rng.uniform((area.x_min, area.y_min), (area.x_max, area.y_max), size=(count, 2))
-
-
-def measurements_at(
-    scenario: Scenario,
-    radio: RadioModel,
-    jammer: JammerParams | None,
-    xy: np.ndarray,
-    rng: np.random.Generator,
-    *,
-    time: float | np.ndarray = 0.0,
-    step: int | np.ndarray = 0,
-    source: str | list[str] = "sim",
-) -> MeasurementBatch:
-    """Measurements at given positions ``xy`` (n, 2) under ``jammer``, labelled as a UAV's
-    receiver reports them: the true SINR of ``radio`` (the world's, shadowed where the
-    scenario says so) plus the receiver's measurement noise, drawn from ``rng``."""
-    reports = radio.measured_reports(radio.evaluate(xy, jammer).sinr_db, rng)
-    return labelled_batch(scenario, xy, reports.level, rng, time=time, step=step, source=source,
-                          sinr_db=reports.sinr_db)
-
-
-def labelled_batch(
-    scenario: Scenario,
-    xy: np.ndarray,
-    levels: np.ndarray,
-    rng: np.random.Generator,
-    *,
-    time: float | np.ndarray = 0.0,
-    step: int | np.ndarray = 0,
-    source: str | list[str] = "sim",
-    sinr_db: np.ndarray | None = None,
-) -> MeasurementBatch:
-    """Uploads of ``levels`` (and the SINRs ``sinr_db``, if reported) reported at ``xy``, with
-    ids drawn from ``rng`` (random 64-bit numbers: unique in practice, and the same for the
-    same seed)."""
-    ids = [f"{value:016x}" for value in rng.integers(0, 2**63, size=len(xy)).tolist()]
-    return MeasurementBatch.of_arrays(ids, source, step, time, scenario_features(scenario, xy),
-                                      levels, sinr_db)
-
-
-# -- training -----------------------------------------------------------------------------------
 # -- change detection ---------------------------------------------------------------------------
 class DetectorCheck(NamedTuple):
     t: float  # time of the last measurement fed

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch.nn import functional
 
-from cloud_service.sinr_mapping import (
+from cloud_service.simulated_measurements import (
     measurements_at,
     simulated_measurements,
     uniform_positions,
@@ -22,7 +22,7 @@ from cloud_service.torch_networks import TorchSinrMapNetwork
 from planning.networks import SinrMapNetwork, accuracy_of, predict_levels
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
-from shared.shipped import survey_world_digest
+from shared.survey_maps import survey_world_digest
 
 BATCH_SIZE = 200  # paper
 LEARNING_RATE = 5e-3  # paper

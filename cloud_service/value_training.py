@@ -45,14 +45,13 @@ from cloud_service.rollout import (
     LookaheadController,
     OrcaController,
     RasterMaps,
-    fleet_observation,
     fly_episodes,
     outcome_rates,
     perfect_maps,
     run_episodes,
 )
 from cloud_service.torch_networks import TorchValueNetwork
-from planning import lookahead_policy
+from planning.chosen import lookahead_policy
 from planning.features import METHODS, MethodOptions, joint_state_size, observation_state
 from planning.networks import (
     ValueNetwork,
@@ -69,7 +68,7 @@ from shared.paper import TABLE_I_JAMMERS
 from shared.radio import JammerParams
 from shared.resources import resident_mib
 from shared.scenario import Scenario
-from world_sim.core import StepResult, VectorWorld, episode_seed
+from world_sim.core import StepResult, VectorWorld, episode_seed, fleet_observation
 
 VALIDATION_SEED = 20210614  # fixed: every model is scored on the same episodes
 TRAINING_JAMMER_STREAM = 7  # separates the jammer schedule's random stream from missions'

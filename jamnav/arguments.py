@@ -9,6 +9,8 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
+from shared.messages import JAMMER_LIMITS, JammerCommand
+
 
 class UsageError(Exception):
     """A problem with the user's input, reported as one line (exit 2)."""
@@ -99,9 +101,23 @@ def sinr_map_argument(option: str, path: str, scenario):
 def survey_map_argument(option: str, path: str, scenario) -> Path:
     """``sinr_map_argument`` for a survey map, with a one-line warning on stderr when its card
     says it was learned in another radio world than ``scenario``'s."""
-    from shared.shipped import foreign_survey_map
+    from shared.survey_maps import foreign_survey_map
 
     _, card = sinr_map_argument(option, path, scenario)
     if (warning := foreign_survey_map(card, scenario)) is not None:
         print(f"jamnav: warning: {option}: {warning}", file=sys.stderr)
     return Path(path)
+
+
+def jammer_command(action: str, numbers: tuple | None = None, what: str = ""
+                   ) -> JammerCommand:
+    """The world's ``JammerCommand``: ``set`` at ``numbers`` (x, y, power_w, height_m or
+    None), ``off`` or ``show``. Numbers it would refuse are a UsageError with one line that
+    quotes ``what`` the user gave (the command line's X,Y,P[,H], the console's JSON)."""
+    if action != "set":
+        return JammerCommand(action=action)
+    x, y, power, height = numbers
+    try:
+        return JammerCommand(action="set", x=x, y=y, power_w=power, height_m=height)
+    except ValueError:
+        raise UsageError(f"jammer set {what}: {JAMMER_LIMITS}") from None

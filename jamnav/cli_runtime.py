@@ -23,10 +23,11 @@ from jamnav.arguments import (
     UsageError,
     check_fleet,
     check_range,
+    jammer_command,
     output_path,
     survey_map_argument,
 )
-from shared.messages import JAMMER_LIMITS, JammerCommand, mapper_summary
+from shared.messages import mapper_summary
 from shared.scenario import (
     MAX_UAVS,
     SEED_MAX,
@@ -84,7 +85,7 @@ def _check_value_network(path: str, scenario) -> None:
 def _survey_map(args: argparse.Namespace, scenario) -> Path | None:
     """The survey map the cloud starts the online map from: ``--sinr-map``, checked now, or
     the shipped one of the scenario's radio world; None for the other maps."""
-    from shared.shipped import NoSurveyMapError, sinr_map_for
+    from shared.survey_maps import NoSurveyMapError, sinr_map_for
 
     if args.map != "online":
         if args.sinr_map is not None:
@@ -189,20 +190,6 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 # -- jammer -------------------------------------------------------------------------------------
-def jammer_command(action: str, numbers: tuple | None = None, what: str = ""
-                   ) -> JammerCommand:
-    """The world's ``JammerCommand``: ``set`` at ``numbers`` (x, y, power_w, height_m or
-    None), ``off`` or ``show``. Numbers it would refuse are a UsageError with one line that
-    quotes ``what`` the user gave (the command line's X,Y,P[,H], the console's JSON)."""
-    if action != "set":
-        return JammerCommand(action=action)
-    x, y, power, height = numbers
-    try:
-        return JammerCommand(action="set", x=x, y=y, power_w=power, height_m=height)
-    except ValueError:
-        raise UsageError(f"jammer set {what}: {JAMMER_LIMITS}") from None
-
-
 def cmd_jammer(args: argparse.Namespace) -> int:
     from shared import access, bus
     from shared.messages import JammerReply, jammer_numbers

@@ -570,7 +570,9 @@ cdef void write_angles(Kernel k, const Scene *s, Step *st) noexcept nogil:
 
 
 cdef void expand(Kernel k, const Scene *s, MapView *m, Step *st) noexcept nogil:
-    # planning.reference.LookaheadPolicy.expand (with _margins and _gaps) for one scene.
+    # planning.reference.LookaheadPolicy.expand (with _margins and _gaps) for one scene. Its
+    # rules of arrival and disconnection are the world's, shared.outcomes.arrivals and
+    # shared.outcomes.disconnections, repeated here in C.
     cdef double margin[MAX_WATCHED]
     cdef uint8_t near[MAX_WATCHED]
     cdef double heading[MAX_TURNS]

@@ -28,6 +28,7 @@ from planning.networks import ValueNetwork, WeightsError
 from planning.orca import orca_velocities
 from shared.kinematics import ActionSet, clamp, closest_approach
 from shared.observation import CELL_CLEARANCE_M, Observation
+from shared.outcomes import arrivals, disconnections
 from shared.rewards import RewardModel
 from shared.scenario import Scenario
 
@@ -256,14 +257,15 @@ class LookaheadPolicy:
         speeds, headings, velocity = self.actions.moves(observation.heading)  # (N, A, ...)
         position = observation.position[:, None, :]
         destination = observation.destination[:, None, :]
-        arrived = closest_approach(position - destination, velocity, self.dt) <= self.tolerance
-        next_position = np.where(arrived[..., None], destination, position + velocity * self.dt)
+        arrived, next_position = arrivals(position, velocity, destination, self.dt,
+                                          self.tolerance)
 
         others_velocity = self.others_velocity(observation)
         others_next = observation.others_position + others_velocity * self.dt
         gap = self._gaps(observation, velocity, others_velocity)
         level = radio_map.level_at(next_position)
-        below = np.where(level == 0, observation.below_steps[:, None] + 1, 0)
+        below, lost = disconnections(level, observation.below_steps[:, None],
+                                     self.disconnection_limit, still_flying=~arrived & (gap > 0))
         check_now = self.rewards.is_check_step(observation.step)[:, None]
         reward = self.rewards.total(level, check_now, gap, arrived)
 
@@ -287,7 +289,6 @@ class LookaheadPolicy:
         # time below T_s also knows which steps would end it by disconnection.
         terminal = arrived | (gap <= 0)
         if self.options.disconnection_memory:
-            lost = ~arrived & (gap > 0) & (below > self.disconnection_limit)
             terminal |= lost
             reward = reward + self.options.disconnection_reward * lost
         return Expansion(speeds, headings, velocity, next_position, level, below, reward,

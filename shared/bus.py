@@ -7,6 +7,7 @@ milliseconds instead of half a second).
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import os
@@ -19,7 +20,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from contextlib import nullcontext
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, NamedTuple, TypeVar
 
 import zenoh
 import zenoh.ext
@@ -344,3 +345,41 @@ def service_session(role: str, endpoint: str, login: Login | None = None
     except BusError as exc:
         print(f"{role}: error: {exc}", file=sys.stderr)
         return None, stop
+
+
+class ServiceSetup(NamedTuple):
+    """What a process of the system runs once its arguments are checked."""
+
+    endpoint: str
+    login: Login | None
+    # Runs the process on its session until ``stop`` is set, logging to the logger given, and
+    # gives its exit code.
+    run: Callable[[zenoh.Session, threading.Event, logging.Logger], int]
+    log_name: str | None = None  # how the log names the process, where not by its role
+
+
+def run_service(role: str, parser: argparse.ArgumentParser,
+                setup: Callable[[argparse.Namespace], ServiceSetup], argv: list[str] | None,
+                refused: tuple[type[Exception], ...] = ()) -> int:
+    """The shell of the world, the cloud and an agent: ``parser`` reads the command line
+    ``argv``; ``setup`` checks what it says, and a mistake in it (a ValueError, a BusError or
+    one of ``refused``) ends in one line and exit 2; then logging on stderr and a session to the
+    router that SIGTERM, SIGINT or the parent's end stop, or exit 1 where the router cannot be
+    reached; then the process runs, and its exit code is the shell's."""
+    args = parser.parse_args(argv)
+    try:
+        service = setup(args)
+    except (ValueError, BusError, *refused) as exc:
+        return bad_arguments(role, exc)
+    log = setup_logging(service.log_name or role)
+    session, stop = service_session(role, service.endpoint, service.login)
+    if session is None:
+        return 1
+    with session:
+        return service.run(session, stop, log)
+
+
+def bad_arguments(role: str, error: Exception) -> int:
+    """One line on stderr for a mistake in what ``role`` was asked to run: exit 2."""
+    print(f"{role}: error: {error}", file=sys.stderr)
+    return 2

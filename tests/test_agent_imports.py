@@ -19,7 +19,8 @@ import uav_agent.process
 from shared.messages import AgentObservation, SinrMap, ValueWeights
 from planning.networks import sha256
 from shared.scenario import load_scenario
-from shared.shipped import VALUE_NET, sinr_map_for
+from shared.shipped import VALUE_NET
+from shared.survey_maps import sinr_map_for
 
 scenario = load_scenario()
 models = uav_agent.process.Models(scenario, logging.getLogger("agent"))

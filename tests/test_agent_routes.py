@@ -8,7 +8,8 @@ import numpy as np
 
 from planning.networks import sha256
 from shared.messages import AgentObservation, SinrMap, ValueWeights
-from shared.shipped import EXTENDED_VALUE_NET, sinr_map_for
+from shared.shipped import EXTENDED_VALUE_NET
+from shared.survey_maps import sinr_map_for
 from uav_agent.process import ROUTE_FIELDS_KEPT, Models
 
 

@@ -5,15 +5,16 @@ import pytest
 
 from cloud_service.evaluation import load_policy
 from cloud_service.jammer_estimation import positions_from_features
-from cloud_service.rollout import LookaheadController, fleet_observation, perfect_maps
+from cloud_service.rollout import LookaheadController, perfect_maps
 from shared.measurements import scenario_features
 from shared.observation import Observation
 from shared.outcomes import Outcome
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
-from shared.shipped import EXTENDED_VALUE_NET, SINR_MAP_NO_JAMMER_CITY, sinr_map_for
+from shared.shipped import EXTENDED_VALUE_NET, SINR_MAP_NO_JAMMER_CITY
+from shared.survey_maps import sinr_map_for
 from tests import float32_bounds as bounds
-from world_sim.core import VectorWorld, near_pairs
+from world_sim.core import VectorWorld, fleet_observation, near_pairs
 
 BLOCK_CENTRES = (-150.0, -50.0, 50.0, 150.0)
 

@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 import torch
 
-from cloud_service.rollout import LookaheadController, fleet_observation, perfect_maps
+from cloud_service.rollout import LookaheadController, perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
-from planning import PLANNER_VARIABLE, PlannerError, lookahead_policy
+from planning import PLANNER_VARIABLE, PlannerError
+from planning.chosen import lookahead_policy
 from planning.features import (
     ABSENT_DISTANCE,
     EXTENDED_METHOD,
@@ -36,7 +37,7 @@ from shared.paper import TABLE_I_JAMMERS, jammer_params
 from shared.shipped import EXTENDED_CROWD_VALUE_NET, EXTENDED_VALUE_NET, VALUE_NET
 from tests import float32_bounds as bounds
 from tests.test_policy import untrained
-from world_sim.core import VectorWorld, episode_seed
+from world_sim.core import VectorWorld, episode_seed, fleet_observation
 
 ROOT = Path(__file__).resolve().parent.parent
 

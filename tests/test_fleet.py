@@ -19,7 +19,7 @@ from shared.observation import Observation, decision_reach, decision_relevant
 from shared.radio import RadioModel
 from shared.shipped import VALUE_NETS
 from world_sim.core import VectorWorld, episode_seed
-from world_sim.process import fleet_observation
+from world_sim.process import observation_sent
 
 
 def sent_sizes(scenario, uavs: int, trimmed: bool = True) -> list[int]:
@@ -30,7 +30,7 @@ def sent_sizes(scenario, uavs: int, trimmed: bool = True) -> list[int]:
         world.reset([0], [episode_seed(0, episode)])
         for _ in range(5):
             if trimmed:
-                observation, relevant = fleet_observation(world, scenario)
+                observation, relevant = observation_sent(world)
             else:
                 observation, relevant = whole_fleet(world), [None] * uavs
             sizes += [len(encode(AgentObservation.of_row(
@@ -51,7 +51,7 @@ def test_the_others_sent_are_the_nearest_and_those_in_reach(scenario):
     world = VectorWorld(scenario, 1, 64)
     world.reset([0], [episode_seed(0, 1)])
     world.status[0, ::7] = 1  # a few have finished: never sent
-    observation, relevant = fleet_observation(world, scenario)
+    observation, relevant = observation_sent(world)
     count = scenario.policy.observed_uavs
     reach = decision_reach(scenario, np.array([scenario.uav.radius_m]))[0]
     for uav in range(64):
@@ -113,7 +113,7 @@ def test_the_trimmed_observation_decides_as_the_whole_fleet(scenario, radio_map,
                                                            seed, uavs, side):
     world = crowd(seed, uavs, side, scenario)
     fleet = whole_fleet(world)
-    observation, relevant = fleet_observation(world, scenario)
+    observation, relevant = observation_sent(world)
     rows = np.flatnonzero(world.active[0]).tolist()
 
     def whole(row):

@@ -8,7 +8,7 @@ import torch
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from cloud_service.rollout import LookaheadController, fleet_observation, perfect_maps
+from cloud_service.rollout import LookaheadController, perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
 from planning.features import EXTENDED_METHOD, joint_state_size
 from planning.maps import TrueMap
@@ -20,7 +20,7 @@ from shared.outcomes import Outcome
 from shared.radio import JammerParams, RadioModel
 from shared.shipped import EXTENDED_VALUE_NET
 from tests import float32_bounds as bounds
-from world_sim.core import VectorWorld, episode_seed
+from world_sim.core import VectorWorld, episode_seed, fleet_observation
 
 
 def untrained(size: int, method: dict | None = None) -> ValueNetwork:

@@ -8,13 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from cloud_service.sinr_mapping import measurements_at
+from cloud_service.simulated_measurements import measurements_at
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import load_scenario
 from shared.shadowing import ShadowingField, shadowing_field
-from shared.shipped import (
-    SINR_MAP_NO_JAMMER,
-    SINR_MAP_NO_JAMMER_SHADOWED,
+from shared.shipped import SINR_MAP_NO_JAMMER, SINR_MAP_NO_JAMMER_SHADOWED
+from shared.survey_maps import (
     NoSurveyMapError,
     foreign_survey_map,
     sinr_map_for,

@@ -21,14 +21,13 @@ from cloud_service.jammer_estimation import (
 )
 from cloud_service.online_map_sim import Fleet, jammer_params
 from cloud_service.process import estimate_of, map_card
+from cloud_service.simulated_measurements import labelled_batch, simulated_measurements
 from cloud_service.sinr_mapping import (
     TARGET_ACCURACY,
     OnlineSinrMapper,
     PublishedWeights,
     RetrainConfig,
     _Change,
-    labelled_batch,
-    simulated_measurements,
 )
 from cloud_service.sinr_memory import SinrMemory
 from cloud_service.sinr_training import fit_sinr_map, train_sinr_map, warm_up

@@ -303,7 +303,7 @@ def test_new_maps_are_built_beside_the_deciding_thread_and_never_replaced_by_old
     deciding thread only swaps it in. A version built late never replaces a newer one."""
     from planning.networks import sha256
     from shared.messages import SinrMap
-    from shared.shipped import sinr_map_for
+    from shared.survey_maps import sinr_map_for
 
     data = sinr_map_for(scenario).read_bytes()
     maps = [SinrMap(version=v, sha256=sha256(data), data=data, mode="online") for v in (1, 2, 3)]

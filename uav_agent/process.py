@@ -29,8 +29,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import zenoh
 
-from planning import PlannerError, lookahead_policy, require_planner
+from planning import PlannerError
+from planning.chosen import lookahead_policy, require_planner
 from planning.maps import LevelRaster, RasterMap, sinr_network_raster
 from planning.networks import WeightsError, from_bytes
 from planning.reference import LookaheadPolicy
@@ -48,7 +50,7 @@ from shared.messages import (
     WeightsRefused,
     encode,
 )
-from shared.scenario import MAX_UAVS, Scenario, ScenarioError, load_scenario
+from shared.scenario import MAX_UAVS, Scenario, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
 from uav_agent.uploads import (
     DEFAULT_BATCH,
@@ -480,37 +482,31 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        require_planner()
-        scenario = load_scenario(args.scenario)
-        if args.uav is not None and not 0 <= args.uav < MAX_UAVS:
-            raise ValueError(f"--uav must be between 0 and {MAX_UAVS - 1}")
-        if not 1 <= args.upload_every <= MAX_UPLOAD:
-            raise ValueError(f"--upload-every must be between 1 and {MAX_UPLOAD}")
-        if args.outbox < 1:
-            raise ValueError("--outbox must be at least 1")
-        if args.outbox_dir is not None:
-            try:
-                args.outbox_dir.mkdir(parents=True, exist_ok=True)
-            except OSError as exc:
-                raise ValueError(f"--outbox-dir {args.outbox_dir}: {exc.strerror}") from None
-        topics = Topics(args.prefix)
-        endpoint = endpoint_from(args.endpoint)
-        login = None
-        if args.credentials is not None:
-            if args.uav is None:
-                raise ValueError("--credentials needs --uav: an agent logs in as agent-<uav>")
-            login = access.login_for(args.credentials, access.agent_role(args.uav))
-    except (ScenarioError, ValueError, bus.BusError, PlannerError) as exc:
-        print(f"agent: error: {exc}", file=sys.stderr)
-        return 2
-    log = bus.setup_logging(f"agent-{'?' if args.uav is None else args.uav}")
-    session, stop = bus.service_session("agent", endpoint, login)
-    if session is None:
-        return 1
-    with session:
+def agent_setup(args: argparse.Namespace) -> bus.ServiceSetup:
+    """The agent the arguments ask for; a ValueError names the first wrong one, and a
+    PlannerError a planner that cannot run."""
+    require_planner()
+    scenario = load_scenario(args.scenario)
+    if args.uav is not None and not 0 <= args.uav < MAX_UAVS:
+        raise ValueError(f"--uav must be between 0 and {MAX_UAVS - 1}")
+    if not 1 <= args.upload_every <= MAX_UPLOAD:
+        raise ValueError(f"--upload-every must be between 1 and {MAX_UPLOAD}")
+    if args.outbox < 1:
+        raise ValueError("--outbox must be at least 1")
+    if args.outbox_dir is not None:
+        try:
+            args.outbox_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ValueError(f"--outbox-dir {args.outbox_dir}: {exc.strerror}") from None
+    topics = Topics(args.prefix)
+    endpoint = endpoint_from(args.endpoint)
+    login = None
+    if args.credentials is not None:
+        if args.uav is None:
+            raise ValueError("--credentials needs --uav: an agent logs in as agent-<uav>")
+        login = access.login_for(args.credentials, access.agent_role(args.uav))
+
+    def run(session: zenoh.Session, stop: threading.Event, log: logging.Logger) -> int:
         uav = args.uav if args.uav is not None else join(session, topics, stop, log)
         if uav is None:
             return 0
@@ -518,7 +514,14 @@ def main(argv: list[str] | None = None) -> int:
                              outbox=args.outbox, outbox_dir=args.outbox_dir)
         if agent.start(stop):
             agent.run(stop)
-    return 0
+        return 0
+
+    return bus.ServiceSetup(endpoint, login, run,
+                            log_name=f"agent-{'?' if args.uav is None else args.uav}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    return bus.run_service("agent", build_parser(), agent_setup, argv, refused=(PlannerError,))
 
 
 if __name__ == "__main__":

@@ -17,7 +17,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from shared.kinematics import ActionSet, closest_approach, velocity_of
-from shared.outcomes import Outcome
+from shared.neighbours import nearby_others
+from shared.observation import Observation, decision_reach
+from shared.outcomes import Outcome, arrivals, disconnections
 from shared.radio import JammerParams, RadioModel, RadioReading
 from shared.rewards import RewardModel
 from shared.scenario import Scenario
@@ -285,20 +287,18 @@ class VectorWorld:
         np.minimum.at(gap, (env, first), pair_gap)
         np.minimum.at(gap, (env, second), pair_gap)
         collided = active & (gap <= 0)
-
-        goal_distance = closest_approach(self.position - self.destination, velocity, dt)
-        arrived = active & ~collided & (goal_distance <= self.scenario.uav.arrival_tolerance_m)
-
-        new_position = self.position + velocity * dt
-        new_position = np.where(arrived[..., None], self.destination, new_position)
+        arrived, new_position = arrivals(self.position, velocity, self.destination, dt,
+                                         self.scenario.uav.arrival_tolerance_m,
+                                         may_arrive=active & ~collided)
         reading = self._radio_of_active(new_position, active)
-        below = np.where(reading.level == 0, self.below_steps + 1, 0)
+        below, disconnected = disconnections(reading.level, self.below_steps,
+                                             self.disconnection_limit,
+                                             still_flying=active & ~collided & ~arrived)
         if self.record_measurements:
             self._record_measurements(new_position, active)
 
         check_now = self.rewards.is_check_step(self.steps)[:, None]
         self.steps += 1
-        disconnected = active & ~collided & ~arrived & (below > self.disconnection_limit)
         reward = np.where(active, self.rewards.total(reading.level, check_now, gap, arrived), 0.0)
         timed_out = (
             active & ~collided & ~arrived & ~disconnected & (self.steps >= self.step_limit)[:, None]
@@ -322,3 +322,15 @@ class VectorWorld:
         # hears nothing more from the world.
         self.measured &= ~finished
         return StepResult(reward, finished, ~self.active.any(axis=1))
+
+
+def fleet_observation(world: VectorWorld) -> Observation:
+    """What every UAV of the world observes, one row per UAV (env-major): of the others, only
+    those that can change its decision (``nearby_others``), so that a step costs O(J log J)."""
+    reach = float(decision_reach(world.scenario, world.radius.max()))
+    others = nearby_others(world.position, world.active,
+                           world.scenario.policy.observed_uavs, reach)
+    return Observation.of_fleet(
+        world.position, world.velocity, world.heading, world.destination, world.radius,
+        world.max_speed, world.level, world.below_steps, world.active, world.steps, others,
+    )

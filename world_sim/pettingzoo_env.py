@@ -54,8 +54,12 @@ from shared.radio import JammerParams
 from shared.scenario import SEED_MAX, Scenario, load_scenario
 from world_sim.core import VectorWorld, episode_seed
 
-OWN_FEATURES = 10
-OTHER_FEATURES = 6
+# The observation's entries, in order (the table above): the UAV's own, then each other's.
+# Not the value network's joint state (planning.features), which turns the world toward the
+# destination: a PettingZoo policy learns from the world's frame.
+OWN_ENTRIES = ("x", "y", "vx", "vy", "heading", "dest_x", "dest_y", "radius", "max_speed",
+               "sinr_level")
+OTHER_ENTRIES = ("dx", "dy", "vx", "vy", "radius", "present")
 _TERMINATING = (int(Outcome.SUCCESS), int(Outcome.DISCONNECTION), int(Outcome.COLLISION))
 
 
@@ -116,7 +120,8 @@ class JamnavParallelEnv(ParallelEnv):
             agent: spaces.Discrete(len(self.action_set)) for agent in self.possible_agents
         }
         self.state_space = spaces.Box(
-            -np.inf, np.inf, shape=(self.num_uavs * (OWN_FEATURES + 1) + 3,), dtype=np.float32
+            -np.inf, np.inf, shape=(self.num_uavs * (len(OWN_ENTRIES) + 1) + 3,),
+            dtype=np.float32
         )
 
     # -- spaces ------------------------------------------------------------------------------
@@ -124,13 +129,17 @@ class JamnavParallelEnv(ParallelEnv):
         area, uav = self.scenario.area, self.scenario.uav
         inf, v = np.inf, uav.max_speed_mps
         top_level = self.scenario.channel.level_count - 1
-        own_low = [-inf, -inf, -v, -v, -math.pi, area.x_min, area.y_min, 0.0, 0.0, 0.0]
-        own_high = [inf, inf, v, v, math.pi, area.x_max, area.y_max, inf, inf, top_level]
-        other_low = [-inf, -inf, -v, -v, 0.0, 0.0]
-        other_high = [inf, inf, v, v, inf, 1.0]
-        low = np.array(own_low + other_low * self.observed_uavs, dtype=np.float32)
-        high = np.array(own_high + other_high * self.observed_uavs, dtype=np.float32)
-        return spaces.Box(low, high, dtype=np.float32)
+        own = {"x": (-inf, inf), "y": (-inf, inf), "vx": (-v, v), "vy": (-v, v),
+               "heading": (-math.pi, math.pi), "dest_x": (area.x_min, area.x_max),
+               "dest_y": (area.y_min, area.y_max), "radius": (0.0, inf),
+               "max_speed": (0.0, inf), "sinr_level": (0.0, top_level)}
+        other = {"dx": (-inf, inf), "dy": (-inf, inf), "vx": (-v, v), "vy": (-v, v),
+                 "radius": (0.0, inf), "present": (0.0, 1.0)}
+        bounds = ([own[name] for name in OWN_ENTRIES]
+                  + [other[name] for name in OTHER_ENTRIES] * self.observed_uavs)
+        return spaces.Box(np.array([low for low, _ in bounds], dtype=np.float32),
+                          np.array([high for _, high in bounds], dtype=np.float32),
+                          dtype=np.float32)
 
     def observation_space(self, agent: str) -> spaces.Box:
         return self._observation_spaces[agent]
@@ -160,7 +169,8 @@ class JamnavParallelEnv(ParallelEnv):
             self.world.set_jammer(0, self._jammer_from(options["jammer"]))
         self.world.reset([0], [episode_seed(self.master_seed, self._episode)])
         self.agents = self.possible_agents[:]
-        observations = {agent: self._observe(self._index[agent]) for agent in self.agents}
+        own = self._own_entries()
+        observations = {agent: self._observe(self._index[agent], own) for agent in self.agents}
         infos = {agent: self._info(self._index[agent]) for agent in self.agents}
         if self.render_mode == "human":
             self.render()
@@ -210,7 +220,8 @@ class JamnavParallelEnv(ParallelEnv):
 
         alive = self.agents
         status = world.status[0]
-        observations = {agent: self._observe(self._index[agent]) for agent in alive}
+        own = self._own_entries()
+        observations = {agent: self._observe(self._index[agent], own) for agent in alive}
         rewards = {agent: float(result.reward[0, self._index[agent]]) for agent in alive}
         terminations = {agent: bool(status[self._index[agent]] in _TERMINATING) for agent in alive}
         truncations = {
@@ -223,29 +234,34 @@ class JamnavParallelEnv(ParallelEnv):
         return observations, rewards, terminations, truncations, infos
 
     # -- views of the world ------------------------------------------------------------------
-    def _observe(self, j: int) -> np.ndarray:
+    def _own_entries(self) -> np.ndarray:
+        """Every UAV's own entries (J, len(OWN_ENTRIES)), in OWN_ENTRIES' order."""
         w = self.world
-        obs = np.zeros(OWN_FEATURES + OTHER_FEATURES * self.observed_uavs, dtype=np.float32)
-        obs[0:2] = w.position[0, j]
-        obs[2:4] = w.velocity[0, j]
-        obs[4] = w.heading[0, j]
-        obs[5:7] = w.destination[0, j]
-        obs[7] = w.radius[0, j]
-        obs[8] = w.max_speed[0, j]
-        obs[9] = w.level[0, j]
+        columns = {"x": w.position[0, :, 0], "y": w.position[0, :, 1],
+                   "vx": w.velocity[0, :, 0], "vy": w.velocity[0, :, 1], "heading": w.heading[0],
+                   "dest_x": w.destination[0, :, 0], "dest_y": w.destination[0, :, 1],
+                   "radius": w.radius[0], "max_speed": w.max_speed[0], "sinr_level": w.level[0]}
+        return np.column_stack([columns[name] for name in OWN_ENTRIES])
+
+    def _observe(self, j: int, own: np.ndarray) -> np.ndarray:
+        """UAV ``j``'s observation, its own entries taken from ``own`` (``_own_entries``)."""
+        w = self.world
+        obs = np.zeros(len(OWN_ENTRIES) + len(OTHER_ENTRIES) * self.observed_uavs,
+                       dtype=np.float32)
+        obs[: len(OWN_ENTRIES)] = own[j]
         if self.observed_uavs:
             others = np.flatnonzero(w.active[0])
             others = others[others != j]
             offset = w.position[0, others] - w.position[0, j]
             nearest = np.argsort(np.hypot(offset[:, 0], offset[:, 1]), kind="stable")
             nearest = nearest[: self.observed_uavs]
-            block = np.zeros((self.observed_uavs, OTHER_FEATURES))
+            block = np.zeros((self.observed_uavs, len(OTHER_ENTRIES)))
             n = nearest.shape[0]
             block[:n, 0:2] = offset[nearest]
             block[:n, 2:4] = w.velocity[0, others[nearest]]
             block[:n, 4] = w.radius[0, others[nearest]]
             block[:n, 5] = 1.0
-            obs[OWN_FEATURES:] = block.ravel()
+            obs[len(OWN_ENTRIES):] = block.ravel()
         return obs
 
     def _info(self, j: int) -> dict[str, Any]:
@@ -256,22 +272,10 @@ class JamnavParallelEnv(ParallelEnv):
         }
 
     def state(self) -> np.ndarray:
-        """Global state: per UAV the 10 own features of the observation plus its outcome code,
+        """Global state: per UAV the own entries of its observation plus its outcome code,
         then the jammer [x, y, power_w] (power 0 = off)."""
         w = self.world
-        per_uav = np.concatenate(
-            [
-                w.position[0],
-                w.velocity[0],
-                w.heading[0, :, None],
-                w.destination[0],
-                w.radius[0, :, None],
-                w.max_speed[0, :, None],
-                w.level[0, :, None],
-                w.status[0, :, None],
-            ],
-            axis=1,
-        )
+        per_uav = np.concatenate([self._own_entries(), w.status[0, :, None]], axis=1)
         jammer = [w.jammer_x[0], w.jammer_y[0], w.jammer_power[0]]
         return np.concatenate([per_uav.ravel(), jammer]).astype(np.float32)
 

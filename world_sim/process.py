@@ -53,14 +53,13 @@ from shared.messages import (
     encode,
     outcome_labels,
 )
-from shared.neighbours import nearby_others
 from shared.observation import Observation, decision_reach, decision_relevant
 from shared.paper import JammerSetting
 from shared.radio import RadioModel
-from shared.scenario import MAX_UAVS, Scenario, ScenarioError, load_scenario
+from shared.scenario import MAX_UAVS, Scenario, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
 from world_sim.cloud_rounds import CloudRounds
-from world_sim.core import VectorWorld, episode_seed
+from world_sim.core import VectorWorld, episode_seed, fleet_observation
 from world_sim.jammers import swapping_jammers
 
 ROLE = "world"
@@ -233,18 +232,14 @@ class JammerDesk:
             return taken
 
 
-def fleet_observation(world: VectorWorld, scenario: Scenario) -> tuple[Observation, np.ndarray]:
-    """What every UAV of the world's one environment observes now, as the in-process
-    evaluation sees it, and which of those others (J, M) its agent is sent: only the ones
-    that can change its decision, so that a step's traffic grows with J, not J^2."""
-    w, count = world, scenario.policy.observed_uavs
-    nearby = nearby_others(w.position, w.active, count,
-                           float(decision_reach(scenario, w.radius.max())))
-    observation = Observation.of_fleet(
-        w.position, w.velocity, w.heading, w.destination, w.radius, w.max_speed, w.level,
-        w.below_steps, w.active, w.steps, nearby)
-    return observation, decision_relevant(observation, count,
-                                          decision_reach(scenario, observation.radius))
+def observation_sent(world: VectorWorld) -> tuple[Observation, np.ndarray]:
+    """What every UAV of the world's one environment observes now (``fleet_observation``,
+    as the in-process evaluation sees it), and which of those others (J, M) its agent is
+    sent: only the ones that can change its decision, so that a step's traffic grows with J,
+    not J^2."""
+    observation = fleet_observation(world)
+    return observation, decision_relevant(observation, world.scenario.policy.observed_uavs,
+                                          decision_reach(world.scenario, observation.radius))
 
 
 class WorldService:
@@ -446,7 +441,7 @@ class WorldService:
             # known here, or its first observation could be lost.
             if uav < self.config.uavs and not bus.wait_matching(self.observation_pubs[uav], 2.0):
                 self.log.warning("agent %d is live but not subscribed", uav)
-        observation, relevant = fleet_observation(w, self.scenario)
+        observation, relevant = observation_sent(w)
         flown = self.rounds.flown_at(self.round_base + self.steps)
         for uav in sorted(active):
             reports, reports_db = ([], []) if self.config.cloud_clock else self._reports(uav)
@@ -538,38 +533,36 @@ def initial_jammer(scenario: Scenario, text: str | None, off: bool) -> JammerInf
     return jammer if jammer.power_w > 0 else None
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    log = bus.setup_logging(ROLE)
-    try:
-        scenario = load_scenario(args.scenario)
-        uavs = scenario.missions.uav_count if args.uavs is None else args.uavs
-        if not 1 <= uavs <= MAX_UAVS:
-            raise ValueError(f"--uavs must be between 1 and {MAX_UAVS}")
-        if args.cloud_clock and args.clock != "lockstep":
-            raise ValueError("--cloud-clock needs --clock lockstep")
-        for name in ("episodes", "duration", "rate", "deadline", "swap_every"):
-            value = getattr(args, name)
-            if value is not None and not value > 0:
-                raise ValueError(f"--{name} must be positive")
-        jammer = initial_jammer(scenario, args.jammer, args.no_jammer)
-        config = WorldConfig(uavs=uavs, seed=args.seed, episodes=args.episodes,
-                             duration=args.duration, first_episode=args.first_episode,
-                             clock=args.clock, rate=args.rate, deadline=args.deadline,
-                             start_timeout=args.start_timeout, cloud_clock=args.cloud_clock,
-                             swap_every=args.swap_every)
-        topics = Topics(args.prefix)
-        endpoint = endpoint_from(args.endpoint)
-        login = access.login_for(args.credentials, access.WORLD)
-    except (ScenarioError, ValueError, bus.BusError) as exc:
-        print(f"world: error: {exc}", file=sys.stderr)
-        return 2
-    session, stop = bus.service_session("world", endpoint, login)
-    if session is None:
-        return 1
-    with session:
+def world_setup(args: argparse.Namespace) -> bus.ServiceSetup:
+    """The world the arguments ask for; a ValueError names the first wrong one."""
+    scenario = load_scenario(args.scenario)
+    uavs = scenario.missions.uav_count if args.uavs is None else args.uavs
+    if not 1 <= uavs <= MAX_UAVS:
+        raise ValueError(f"--uavs must be between 1 and {MAX_UAVS}")
+    if args.cloud_clock and args.clock != "lockstep":
+        raise ValueError("--cloud-clock needs --clock lockstep")
+    for name in ("episodes", "duration", "rate", "deadline", "swap_every"):
+        value = getattr(args, name)
+        if value is not None and not value > 0:
+            raise ValueError(f"--{name} must be positive")
+    jammer = initial_jammer(scenario, args.jammer, args.no_jammer)
+    config = WorldConfig(uavs=uavs, seed=args.seed, episodes=args.episodes,
+                         duration=args.duration, first_episode=args.first_episode,
+                         clock=args.clock, rate=args.rate, deadline=args.deadline,
+                         start_timeout=args.start_timeout, cloud_clock=args.cloud_clock,
+                         swap_every=args.swap_every)
+    topics = Topics(args.prefix)
+
+    def run(session: zenoh.Session, stop: threading.Event, log: logging.Logger) -> int:
         WorldService(session, topics, scenario, config, jammer, log).run(stop)
-    return 0
+        return 0
+
+    return bus.ServiceSetup(endpoint_from(args.endpoint),
+                            access.login_for(args.credentials, access.WORLD), run)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return bus.run_service(ROLE, build_parser(), world_setup, argv)
 
 
 if __name__ == "__main__":

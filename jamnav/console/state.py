@@ -11,9 +11,8 @@ import threading
 from collections import deque
 from typing import Any
 
-from jamnav.arguments import UsageError
-from jamnav.cli_runtime import jammer_command
-from jamnav.supervisor import describe_event
+from jamnav.arguments import UsageError, jammer_command
+from jamnav.event_lines import describe_event
 from shared.messages import (
     JammerCommand,
     JammerEstimate,

@@ -1,0 +1,37 @@
+"""Events of a run (messages dumped as JSON) as lines for people: the supervisor's live output
+and summary and the console's log write the same line."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from shared.messages import JammerEstimate, describe_estimate
+
+
+def describe_event(event: dict[str, Any]) -> str | None:
+    """One line for people about an event (a message dumped as JSON); None for the outcomes
+    and the end of the run, which the summary counts instead."""
+    kind = event["type"]
+    if kind == "jammer_changed":
+        jammer = event.get("jammer")
+        where = "switched off" if jammer is None else (
+            f"moved to ({jammer['x']:g}, {jammer['y']:g}), {jammer['power_w']:g} W")
+        return f"jammer {where} (episode {event.get('episode')}, step {event.get('step')})"
+    if kind == "change_detected":
+        return (f"change detected: map v{event['version']} right on "
+                f"{event['accuracy']:.0%} of recent uploads")
+    if kind == "jammer_estimated":
+        estimate = JammerEstimate(**event["estimate"])
+        return f"map v{estimate.map_version}, jammer at {describe_estimate(estimate)}"
+    if kind == "sinr_weights_published":
+        accuracy = event.get("accuracy")
+        what = "provisional SINR map" if event.get("provisional") else "SINR map"
+        return f"{what} v{event['version']} published" + (
+            "" if accuracy is None else f" (held-out accuracy {accuracy:.1%})")
+    if kind == "weights_refused":
+        version = event["version"] if event.get("version") is not None else "?"
+        return (f"agent {event['uav']} refused {event['weights']} weights v{version} "
+                f"({event['reason']}); flying on v{event.get('flying_on')}")
+    if kind == "retrain_failed":
+        return f"retraining map v{event['version']} failed: {event['error']}"
+    return None
