@@ -186,7 +186,7 @@ def test_the_cloud_on_the_lockstep_clock_flies_eval_s_maps_and_outcomes(supervis
     if reports == "db":  # a scenario file whose receivers report the SINR, as users write one
         path = tmp_path / "reporting.toml"
         path.write_text(resolve_scenario_path(None).read_text().replace(
-            "[uav]\n", '[uav]\nreport = "db"\n', 1))
+            'report = "level"', 'report = "db"', 1))
         scenario = load_scenario(path)
         assert scenario.uav.report == "db"
         extra += ["--scenario", str(path)]
