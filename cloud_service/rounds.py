@@ -55,7 +55,11 @@ class RoundDesk:
         self._rounds: dict[int, Round] = {}
 
     def open(self, opened: RoundOpened) -> None:
-        self._rounds.setdefault(opened.round, Round()).opened = opened
+        """The world opens a round; one already closed is no round of this run's (a replayed
+        or forged message), and is ignored: opened, it would be the oldest open round, and
+        every round after it would wait ROUND_WAIT_S behind it."""
+        if not self.stale(opened.round):
+            self._rounds.setdefault(opened.round, Round()).opened = opened
 
     def add(self, upload: MeasurementUpload, reply: Any) -> None:
         """An upload of a round; a second one of the same UAV and round replaces the first."""

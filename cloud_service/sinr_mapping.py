@@ -254,6 +254,7 @@ class IngestReport(NamedTuple):
 
 
 RECENT_KEPT = 500  # uploads over which the map in service is scored for status
+CLOSE_WAIT_S = 5.0  # how long a closing mapper waits for the work under way
 
 
 class OnlineSinrMapper:
@@ -800,10 +801,12 @@ class OnlineSinrMapper:
         return not self._busy
 
     def close(self) -> None:
-        """Stop the work under way (a fit at its next step, an estimate once it returns) and
-        close the memory: a cloud that is told to stop stops within about a second."""
+        """Stop the work under way and close the memory. A fit stops at its next step; an
+        estimate cannot be cut short, so it is waited for ``CLOSE_WAIT_S`` at most and its
+        result dropped: a cloud told to stop stops within seconds, however loaded its
+        machine (a live swap on a loaded 2-core machine kept one estimating past 30 s)."""
         self._closing.set()
-        self.wait()
+        self.wait(CLOSE_WAIT_S)
         self.memory.close()
 
 
