@@ -21,8 +21,11 @@ from shared.messages import MeasurementUpload, RoundOpened
 ROUND_WAIT_S = 30.0
 # How long uploads wait for the world to open their round: it does so as it hands the agents
 # their reports, so a round unopened by then is no round of this world's (a forgery, or a
-# world gone), and its uploads are kept outside the rounds.
-OPEN_WAIT_S = 2.0
+# world gone), and its uploads are kept outside the rounds. The world opens a round just after
+# handing the agents its reports, and an agent's upload can reach the cloud first: on a loaded
+# 2-core machine by seconds, so 2 s took a real round's uploads out of it now and then. An
+# upload held for a forged round is answered within this, well inside an agent's patience.
+OPEN_WAIT_S = 5.0
 
 
 def delay_rounds(latency_s: float, step_s: float) -> int:
@@ -70,6 +73,7 @@ class RoundDesk:
     ) -> tuple[RoundOpened, list[tuple[MeasurementUpload, Any]]] | None:
         """The oldest opened round whose uploads are all in (or that waited long enough), its
         uploads in UAV order; None while it waits."""
+        self._drop_unanswered(now)
         opened = [number for number, r in self._rounds.items() if r.opened is not None]
         if not opened:
             return None
@@ -80,6 +84,14 @@ class RoundDesk:
         del self._rounds[number]
         self.closed_through = number
         return current.opened, [current.uploads[uav] for uav in sorted(current.uploads)]
+
+    def _drop_unanswered(self, now: float) -> None:
+        """Forget the rounds opened that no upload came for in ROUND_WAIT_S. This run's world
+        opens a round for the agents that measured in it, and they upload at once: such a
+        round is a forged or replayed one, and closing it would put maps in service early and
+        mark every later round of the world stale."""
+        for number in [n for n, r in self._rounds.items() if r.overdue(now) and not r.uploads]:
+            del self._rounds[number]
 
     def unopened(self, now: float) -> list[tuple[MeasurementUpload, Any]]:
         """The uploads of rounds the world has not opened within OPEN_WAIT_S, taken out."""

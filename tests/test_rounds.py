@@ -38,3 +38,17 @@ def test_a_round_already_closed_opens_nothing_and_holds_up_no_later_round():
     opened, uploads = desk.next_closing(0.0)
     assert opened.round == 101 and [reply for _, reply in uploads] == ["second"]
     assert desk.next_closing(0.0) is None
+
+
+def test_a_round_no_upload_came_for_is_forgotten_and_marks_no_later_round_stale():
+    """A forged round far ahead of the world's would, closed when overdue, put the rounds the
+    world opens next behind the desk's closed mark: they would all be ignored."""
+    desk = RoundDesk(delay=0, serving=0)
+    desk.open(RoundOpened(round=10**12, flown_s=1.0, uavs=[0]))
+    assert desk.next_closing(0.0) is None
+    later = 1e9  # past ROUND_WAIT_S
+    assert desk.next_closing(later) is None and desk.closed_through == -1
+    desk.open(RoundOpened(round=100, flown_s=1.0, uavs=[0]))
+    desk.add(_upload(0, 100), "real")
+    opened, uploads = desk.next_closing(later)
+    assert opened.round == 100 and [reply for _, reply in uploads] == ["real"]
