@@ -247,10 +247,12 @@ def test_ten_thousand_bad_payloads_per_topic_crash_nothing(supervisor, scenario,
         # Every query was answered: the puts and queries block rather than drop, and this
         # zenoh build keeps no drop counters of its own (the router's metrics hold none) that
         # could explain a missing answer. Each upload was answered once, as our decoder says
-        # it should be, and each error answer was counted by the cloud.
+        # it should be, and each error answer was counted by the cloud (which may count more:
+        # a forged round a fuzzed MeasurementRound handed agent 0 makes it upload reports
+        # stamped at the forgery's flight time, which the cloud may refuse in turn).
         assert unanswered == Counter()
         assert set(uploads) <= {(True, ("error",)), (False, ("receipt",))}
-        assert dropped("cloud-0", topics.measurements("*")) == uploads[True, ("error",)]
+        assert dropped("cloud-0", topics.measurements("*")) >= uploads[True, ("error",)]
         assert dropped("world-0", topics.jammer_control) > PER_TOPIC // 2
         for uav in range(UAVS):
             for key in (topics.value_weights, topics.sinr_map):
