@@ -8,6 +8,7 @@ import logging
 import struct
 import tempfile
 import threading
+import time
 from pathlib import Path
 from unittest import mock
 
@@ -340,3 +341,40 @@ def test_new_maps_are_built_beside_the_deciding_thread_and_never_replaced_by_old
         agent.models.commit(maps[1], late)
         assert agent.models.sinr_version == 3 and agent.models.radio_map is newest
         agent.outbox.close()
+
+
+def test_a_map_version_named_before_it_arrived_is_asked_of_the_cloud_and_flown(scenario,
+                                                                                tmp_path):
+    """On the lockstep clock the world names the map version to fly; the map itself comes by
+    another route and may not have arrived. The agent asks the cloud: its newest version is
+    flown if it is the one named; a version the cloud has not published either (a forgery)
+    is not waited for."""
+    from planning.networks import sha256
+    from shared.messages import SinrMap
+    from shared.survey_maps import sinr_map_for
+
+    data = sinr_map_for(scenario).read_bytes()
+    newest = SinrMap(version=4, sha256=sha256(data), data=data, mode="online")
+    asked = []
+
+    def query(session, key, kind, timeout):
+        asked.append(key)
+        return newest
+
+    with mock.patch.multiple(process.bus, reliable_publisher=mock.DEFAULT,
+                             subscribe=mock.DEFAULT, serve_status=mock.DEFAULT):
+        agent = process.AgentService(None, Topics("test"), scenario, 0, LOG, outbox_dir=tmp_path)
+    stop = threading.Event()
+    helper = threading.Thread(target=agent._prepare_updates, args=(stop,), name="maps")
+    helper.start()
+    try:
+        with mock.patch.object(process.bus, "query", query):
+            agent._fly_version(4)
+            assert agent.models.sinr_version == 4 and asked == [Topics("test").sinr_map]
+            started = time.monotonic()
+            agent._fly_version(9)  # never published
+            assert time.monotonic() - started < 5.0 and agent.models.sinr_version == 4
+            assert len(asked) == 2
+    finally:
+        stop.set()
+        helper.join(10)

@@ -69,6 +69,7 @@ TIMINGS_KEPT = 4096
 # 41 KiB in the city: 49 and 166 MiB at the in-process default of 4,096).
 ROUTE_FIELDS_KEPT = 4
 MAP_WAIT_S = 30.0  # how long a decision waits for the map version the world names
+MAP_QUERY_S = 2.0  # how long it waits for the cloud's answer about a version not heard of
 # A round's receipt comes once the cloud has taken the whole round, a refit included, which
 # runs without a wall-clock budget on the lockstep clock.
 ROUND_RECEIPT_S = 60.0
@@ -377,11 +378,17 @@ class AgentService:
             version=version, reason=reason[:500], flying_on=flying_on))
 
     def _fly_version(self, version: int) -> None:
-        """Fly the map version the world names, once built: it was published before the
-        world named it, so it has arrived and is being built, or it never will (a forgery, a
-        version refused). Then, or after MAP_WAIT_S, the agent flies on with what it has."""
+        """Fly the map version the world names, once built. It was published before the
+        world named it, but comes by another route than the world's observation and can
+        still be on its way: a version not heard of yet is asked of the cloud, whose answer
+        is its newest map. One the cloud has not published either never comes (a forgery);
+        then, or after MAP_WAIT_S, the agent flies on with what it has."""
         deadline = time.monotonic() + MAP_WAIT_S
+        asked = False
         while not self.models.fly_version(version):
+            if version > self.heard_sinr and not asked:
+                asked = True
+                self._ask_for_sinr_map()
             if version > self.heard_sinr or time.monotonic() > deadline:
                 if not self.unknown_version_told:
                     self.unknown_version_told = True
@@ -391,6 +398,15 @@ class AgentService:
                 return
             time.sleep(0.002)
             self._take_updates()
+
+    def _ask_for_sinr_map(self) -> None:
+        """The cloud's newest SINR map, taken as if it had just been published; nothing if the
+        cloud does not answer in time."""
+        try:
+            self._on_sinr_map(bus.query(self.session, self.topics.sinr_map, SinrMap,
+                                        timeout=MAP_QUERY_S))
+        except bus.BusError as exc:
+            self.log.info("asking the cloud for its SINR map: %s", exc)
 
     def _act(self, arrived: float, observation: AgentObservation) -> None:
         if (observation.sinr_version is not None
