@@ -897,20 +897,12 @@ def sinr_report_probabilities(
     report step's interval when the no-jammer SINR is ``belief`` (``sinr_beliefs``) less the
     ideal model's loss to the jammer, spread by ``report_sigma_db``, with the outlier share
     of ``_ReportTables``."""
-    estimates, weights = ((jammer.estimates, jammer.weights.tolist())
-                          if isinstance(jammer, JammerHypotheses) else ([jammer], [1.0]))
-    radio = RadioModel(scenario, shadowed=False)
-    _, signal, co_channel = radio.serving(radio.gbs_received_power(xy))
-    ideal_db = 10.0 * np.log10(radio.sinr_of(signal, co_channel, 0.0))
+    losses = _IdealLosses(scenario, xy)
     sd_db = np.hypot(belief.sd_db, report_sigma_db)
     half_step = scenario.uav.report_step_db / 2.0
     total = 0.0
-    for estimate, weight in zip(estimates, weights, strict=True):
-        mean_db = belief.mean_db
-        if estimate.present:
-            mean_db = mean_db - ideal_db + 10.0 * np.log10(radio.sinr_of(
-                signal, co_channel, radio.jammer_interference(xy, _params_of(scenario,
-                                                                             estimate))))
+    for estimate, weight in _weighted(jammer):
+        mean_db = belief.mean_db - losses.loss_db(estimate)
         total = total + weight * np.exp(_log_band_probability(
             (reported_db - half_step - mean_db) / sd_db,
             (reported_db + half_step - mean_db) / sd_db))
@@ -950,6 +942,33 @@ def ideal_level_probabilities(scenario: Scenario, xy: np.ndarray,
                                             (upper_db - sinr_db) / spread_db))
 
 
+def _weighted(jammer: JammerEstimate | JammerHypotheses) -> list[tuple[JammerEstimate, float]]:
+    """A jammer's hypotheses with their weights; an estimate is one, of weight 1."""
+    if isinstance(jammer, JammerHypotheses):
+        return list(zip(jammer.estimates, jammer.weights.tolist(), strict=True))
+    return [(jammer, 1.0)]
+
+
+class _IdealLosses:
+    """The ideal model's no-jammer SINR at points ``xy`` (n, 2), the GBS side worked out once,
+    and the SINR each jammer hypothesis takes off it (dB): a hypothesis adds only its own
+    jammer term."""
+
+    def __init__(self, scenario: Scenario, xy: np.ndarray):
+        self.scenario, self.xy = scenario, xy
+        self.radio = RadioModel(scenario, shadowed=False)
+        _, self._signal, self._co_channel = self.radio.serving(
+            self.radio.gbs_received_power(xy))
+        self.ideal_db = 10.0 * np.log10(self.radio.sinr_of(self._signal, self._co_channel, 0.0))
+
+    def loss_db(self, estimate: JammerEstimate) -> np.ndarray:
+        if not estimate.present:
+            return np.zeros_like(self.ideal_db)
+        jammed = self.radio.sinr_of(self._signal, self._co_channel, self.radio.jammer_interference(
+            self.xy, _params_of(self.scenario, estimate)))
+        return self.ideal_db - 10.0 * np.log10(jammed)
+
+
 def _params_of(scenario: Scenario, estimate: JammerEstimate) -> JammerParams:
     """The radio model's jammer for a present ``estimate`` (at the scenario's jammer height)."""
     return JammerParams(estimate.x, estimate.y, estimate.power_w, scenario.jammer.height_m)
@@ -969,15 +988,12 @@ def _corrected(scenario: Scenario, no_jammer: np.ndarray,
     no-jammer map gives each level the probabilities ``no_jammer`` (n, levels). What does
     not depend on the jammer (the ideal model's SINR, the bands, the spread) is worked out
     once for all hypotheses."""
-    estimates, weights = ((jammer.estimates, jammer.weights.tolist())
-                          if isinstance(jammer, JammerHypotheses) else ([jammer], [1.0]))
+    weighted = _weighted(jammer)
     base = no_jammer.argmax(axis=-1)
-    if report_sigma_db == 0.0 and not any(estimate.present for estimate in estimates):
+    if report_sigma_db == 0.0 and not any(estimate.present for estimate, _ in weighted):
         return np.eye(scenario.channel.level_count)[base]  # what the map says, for certain
-    radio = RadioModel(scenario, shadowed=False)
-    # The GBS side once; each hypothesis adds only its own jammer term.
-    _, signal, co_channel = radio.serving(radio.gbs_received_power(flat))
-    ideal_db = 10.0 * np.log10(radio.sinr_of(signal, co_channel, 0.0))
+    losses = _IdealLosses(scenario, flat)
+    radio, ideal_db = losses.radio, losses.ideal_db
     band_low, band_high = _band_edges(radio, base)
     if shadowing_sigma_db is None:
         shadowing_sigma_db = _fitted_sigma(ideal_db, band_low, band_high)
@@ -985,12 +1001,9 @@ def _corrected(scenario: Scenario, no_jammer: np.ndarray,
     sd_db = np.hypot(prior_sd_db, report_sigma_db)
     bounds = np.concatenate([[-np.inf], radio.level_edges_db, [np.inf]])[:, None]
     total = 0.0
-    for estimate, weight in zip(estimates, weights, strict=True):
-        loss_db = np.zeros_like(ideal_db)  # no jammer: what the map says, as a receiver reports it
-        if estimate.present:
-            jammed = radio.sinr_of(signal, co_channel, radio.jammer_interference(
-                flat, _params_of(scenario, estimate)))
-            loss_db = ideal_db - 10.0 * np.log10(jammed)
+    for estimate, weight in weighted:
+        # With no jammer no loss: what the map says, as a receiver reports it.
+        loss_db = losses.loss_db(estimate)
         # Level k needs the no-jammer SINR in [bounds_k + loss, bounds_k+1 + loss) and its band.
         low = np.maximum(band_low, bounds[:-1] + loss_db)
         high = np.minimum(band_high, bounds[1:] + loss_db)
