@@ -13,10 +13,10 @@ def run() -> list[Figure]:
     scenario = load_scenario()
     radio = RadioModel(scenario)
     points = np.random.default_rng(0).uniform(-50, 50, size=(1_000_000, 2))
-    jammer = radio.default_jammer
+    jammers = radio.default_jammers
 
     def evaluate() -> int:
-        radio.evaluate(points, jammer)
+        radio.evaluate(points, jammers)
         return points.shape[0]
 
     rate = best_rate(evaluate, repeats=3, min_seconds=1.0)

@@ -20,7 +20,7 @@ from planning.orca import orca_velocities, preferred_velocity_toward
 from planning.reference import LookaheadPolicy
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting, jammer_params
-from shared.radio import JammerParams, RadioModel
+from shared.radio import JammerParams, Jammers, RadioModel, as_jammers
 from shared.scenario import Scenario
 from world_sim.core import StepResult, VectorWorld, episode_seed, fleet_observation
 from world_sim.jammers import JammerSchedule
@@ -42,12 +42,13 @@ class RasterMaps:
         self.kept = kept
         self.cache: OrderedDict[tuple[float, ...], LevelRaster] = OrderedDict()
 
-    def raster(self, jammer: JammerParams | None) -> LevelRaster:
-        key = () if jammer is None or jammer.power_w == 0 else tuple(map(float, jammer))
+    def raster(self, jammers: Jammers) -> LevelRaster:
+        key = tuple(tuple(map(float, jammer)) for jammer in as_jammers(jammers)
+                    if jammer.power_w > 0)
         if key in self.cache:
             self.cache.move_to_end(key)
         else:
-            params = JammerParams(*key) if key else None
+            params = [JammerParams(*jammer) for jammer in key]
             self.cache[key] = LevelRaster.sample(
                 self.scenario, lambda xy: self.radio.evaluate(xy, params).level, MAP_SPACING_M
             )
@@ -60,11 +61,10 @@ class RasterMaps:
             return RasterMap(self.scenario, [self.raster(None)], np.zeros(rows.size, np.int64))
         self.kept = max(self.kept, 2 * world.num_envs)  # never evict a setting in flight
         env = rows // world.num_uavs
-        jammers = [(world.jammer_x[e], world.jammer_y[e], world.jammer_power[e],
-                    world.jammer_height[e]) for e in range(world.num_envs)]
+        jammers = [world.jammers_now(e) for e in range(world.num_envs)]
         keys = sorted(set(jammers[e] for e in np.unique(env)))
         position = {key: index for index, key in enumerate(keys)}
-        rasters = [self.raster(JammerParams(*key)) for key in keys]
+        rasters = [self.raster([JammerParams(*jammer) for jammer in key]) for key in keys]
         which = np.array([position[jammers[e]] for e in env], dtype=np.int64)
         return RasterMap(self.scenario, rasters, which)
 

@@ -209,7 +209,7 @@ def cmd_sinr(args: argparse.Namespace) -> int:
     scenario = scenario_with_jammer(args)
     points = _read_points(args)
     radio = RadioModel(scenario)
-    reading = radio.evaluate(points, radio.default_jammer)
+    reading = radio.evaluate(points, radio.default_jammers)
     rows = [
         {
             "x": float(x),

@@ -18,7 +18,7 @@ from planning.networks import SinrMapNetwork, predict_levels
 from planning.routes import FIELDS_KEPT, RouteGrid
 from shared.kinematics import clamp
 from shared.measurements import scenario_features
-from shared.radio import JammerParams, RadioModel
+from shared.radio import Jammers, RadioModel
 from shared.scenario import Scenario
 
 
@@ -45,14 +45,14 @@ RASTER_TILE_COLUMNS = 64
 
 
 class TrueMap:
-    """The simulator's map with a given jammer, computed exactly at every query."""
+    """The simulator's map with given jammers, computed exactly at every query."""
 
-    def __init__(self, radio: RadioModel, jammer: JammerParams | None):
+    def __init__(self, radio: RadioModel, jammers: Jammers):
         self.radio = radio
-        self.jammer = jammer
+        self.jammers = jammers
 
     def level_at(self, xy: np.ndarray) -> np.ndarray:
-        return self.radio.evaluate(xy, self.jammer).level
+        return self.radio.evaluate(xy, self.jammers).level
 
     def for_rows(self, rows: np.ndarray) -> TrueMap:
         return self  # one map for every row

@@ -14,6 +14,7 @@ operator's cloud can know.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -34,6 +35,18 @@ class JammerParams(NamedTuple):
     height_m: float | np.ndarray
 
 
+# The jammers the radio sums in Eq. (3)'s interference: one, several, or none (None or ()).
+Jammers = JammerParams | Sequence[JammerParams] | None
+
+
+def as_jammers(jammers: Jammers) -> tuple[JammerParams, ...]:
+    if jammers is None:
+        return ()
+    if isinstance(jammers, JammerParams):
+        return (jammers,)
+    return tuple(jammers)
+
+
 class RadioReading(NamedTuple):
     sinr: np.ndarray  # linear
     sinr_db: np.ndarray
@@ -49,7 +62,7 @@ class Reports(NamedTuple):
 
 
 class RadioModel:
-    """SINR at UAV altitude for the GBS layout of one scenario, with any jammer or none.
+    """SINR at UAV altitude for the GBS layout of one scenario, with any jammers or none.
 
     ``shadowed``: apply the scenario's shadowing, if it has any (the world's truth); without,
     the idealized Eq. (1)-(5).
@@ -66,7 +79,7 @@ class RadioModel:
         self.threshold_db = channel.sinr_threshold_db
         self.level_edges_db = np.asarray(channel.level_edges_db, dtype=np.float64)
         self.jammer_efficiency = 10.0 ** (scenario.jammer.efficiency_db / 10.0)
-        self.default_jammer = self.jammer_of(scenario)
+        self.default_jammers = self.jammers_of(scenario)
         self._height_gap = self.altitude_m - self.gbs_height_m
         self._tilt_rad = math.radians(gbs.tilt_deg)
         self._beamwidth_rad = math.radians(gbs.beamwidth_3db_deg)
@@ -83,10 +96,17 @@ class RadioModel:
 
     @staticmethod
     def jammer_of(scenario: Scenario) -> JammerParams | None:
+        """The scenario's first jammer where it starts, if it is on."""
         jam = scenario.jammer
         if not jam.enabled or jam.power_w == 0:
             return None
         return JammerParams(jam.x, jam.y, jam.power_w, jam.height_m)
+
+    @staticmethod
+    def jammers_of(scenario: Scenario) -> tuple[JammerParams, ...]:
+        """The scenario's jammers where they start, each on whatever its schedule."""
+        return tuple(JammerParams(jam.x, jam.y, jam.power_w, jam.height_m)
+                     for jam in scenario.jammers if jam.enabled and jam.power_w > 0)
 
     def gbs_received_power(self, xy: np.ndarray) -> np.ndarray:
         """Received power from every GBS, numerator of Eq. (1), with the world's shadowing if
@@ -96,11 +116,12 @@ class RadioModel:
             return received
         return received * _gain_of(self.shadowing.at(xy)[..., :-1])
 
-    def jammer_interference(self, xy: np.ndarray, jammer: JammerParams | None) -> np.ndarray:
-        """I_J of Eq. (5) with a negative path-loss exponent, times the jamming efficiency, with
-        the world's shadowing if it has any."""
-        interference = self._ideal_jammer_interference(xy, jammer)
-        if self.shadowing is None or jammer is None:
+    def jammer_interference(self, xy: np.ndarray, jammers: Jammers) -> np.ndarray:
+        """I_J of Eq. (5) with a negative path-loss exponent, times the jamming efficiency,
+        summed over the jammers, with the world's shadowing if it has any: one field for every
+        jammer link, as it is the receiver's surroundings that shadow them."""
+        interference = self._ideal_jammer_interference(xy, jammers)
+        if self.shadowing is None or not as_jammers(jammers):
             return interference
         return interference * _gain_of(self.shadowing.at(xy)[..., -1])
 
@@ -119,12 +140,12 @@ class RadioModel:
         exponent = -0.5 * (self.alpha + 1.0) * np.log(slant_sq) - (_LN10 / 10.0) * attenuation_db
         return (self.gbs_power_w * self._height_gap) * np.exp(exponent)
 
-    def _ideal_jammer_interference(
-        self, xy: np.ndarray, jammer: JammerParams | None
-    ) -> np.ndarray:
+    def _ideal_jammer_interference(self, xy: np.ndarray, jammers: Jammers) -> np.ndarray:
         xy = np.asarray(xy, dtype=np.float64)
-        if jammer is None:
-            return np.zeros(xy.shape[:-1])
+        each = [self._one_jammer_interference(xy, jammer) for jammer in as_jammers(jammers)]
+        return sum(each[1:], each[0]) if each else np.zeros(xy.shape[:-1])
+
+    def _one_jammer_interference(self, xy: np.ndarray, jammer: JammerParams) -> np.ndarray:
         gap = self.altitude_m - np.asarray(jammer.height_m, dtype=np.float64)
         dx = xy[..., 0] - jammer.x
         dy = xy[..., 1] - jammer.y
@@ -132,11 +153,11 @@ class RadioModel:
         power = np.asarray(jammer.power_w, dtype=np.float64) * self.jammer_efficiency
         return power * gap * slant_sq ** (-0.5 * (self.alpha + 1.0))
 
-    def _powers(self, xy: np.ndarray, jammer: JammerParams | None):
+    def _powers(self, xy: np.ndarray, jammers: tuple[JammerParams, ...]):
         """Received GBS powers (n, K) and jammer interference (n,) at points (n, 2), with the
         shadowing fields interpolated once for both."""
         received = self._ideal_gbs_received_power(xy)
-        interference = self._ideal_jammer_interference(xy, jammer)
+        interference = self._ideal_jammer_interference(xy, jammers)
         if self.shadowing is not None:
             gain = _gain_of(self.shadowing.at(xy))
             received = received * gain[:, :-1]
@@ -184,23 +205,22 @@ class RadioModel:
             reported_db = np.round(measured_db / self.report_step_db) * self.report_step_db
         return Reports(self.level_of(measured_db), reported_db)
 
-    def evaluate(self, xy: np.ndarray, jammer: JammerParams | None = None) -> RadioReading:
-        """SINR (Eq. 1) at every point of ``xy`` (shape (..., 2)); serving GBS = strongest."""
+    def evaluate(self, xy: np.ndarray, jammers: Jammers = None) -> RadioReading:
+        """SINR (Eq. 1) at every point of ``xy`` (shape (..., 2)); serving GBS = strongest.
+        Each jammer's fields are floats or arrays broadcastable to the points."""
         xy = np.asarray(xy, dtype=np.float64)
         batch_shape = xy.shape[:-1]
         flat = xy.reshape(-1, 2)
-        flat_jammer = _flatten_jammer(jammer, batch_shape)
+        flat_jammers = [_flatten_jammer(jammer, batch_shape) for jammer in as_jammers(jammers)]
         n = flat.shape[0]
         sinr = np.empty(n)
         serving = np.empty(n, dtype=np.int64)
         for start in range(0, n, _CHUNK):
             block = slice(start, start + _CHUNK)
-            block_jammer = None
-            if flat_jammer is not None:
-                block_jammer = JammerParams(
-                    *(f if np.ndim(f) == 0 else f[block] for f in flat_jammer)
-                )
-            received, interference = self._powers(flat[block], block_jammer)
+            block_jammers = tuple(
+                JammerParams(*(f if np.ndim(f) == 0 else f[block] for f in jammer))
+                for jammer in flat_jammers)
+            received, interference = self._powers(flat[block], block_jammers)
             best, signal, co_channel = self.serving(received)
             sinr[block] = self.sinr_of(signal, co_channel, interference)
             serving[block] = best
@@ -213,23 +233,21 @@ class RadioModel:
         )
 
     def grid(
-        self, scenario: Scenario, resolution: int, jammer: JammerParams | None
+        self, scenario: Scenario, resolution: int, jammers: Jammers
     ) -> tuple[np.ndarray, np.ndarray, RadioReading]:
         """The map over the scenario's area on a ``resolution`` x ``resolution`` grid."""
         area = scenario.area
         xs = np.linspace(area.x_min, area.x_max, resolution)
         ys = np.linspace(area.y_min, area.y_max, resolution)
         points = np.stack(np.meshgrid(xs, ys, indexing="xy"), axis=-1)
-        return xs, ys, self.evaluate(points, jammer)
+        return xs, ys, self.evaluate(points, jammers)
 
 
 def _gain_of(shadowing_db: np.ndarray) -> np.ndarray:
     return np.exp((_LN10 / 10.0) * shadowing_db)
 
 
-def _flatten_jammer(jammer: JammerParams | None, batch_shape: tuple[int, ...]):
-    if jammer is None:
-        return None
+def _flatten_jammer(jammer: JammerParams, batch_shape: tuple[int, ...]) -> JammerParams:
     fields = []
     for value in jammer:
         if np.ndim(value) == 0:

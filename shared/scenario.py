@@ -37,6 +37,7 @@ SEED_MAX = 2**32 - 1
 # beyond them a typing slip (1e30 W) would turn the whole area off without a word.
 MAX_JAMMER_POWER_W = 1000.0
 MAX_JAMMER_HEIGHT_M = 1000.0
+MAX_JAMMERS = 4  # the most a scenario or the live commands may set at once
 JammerPower = Annotated[float, Field(ge=0, le=MAX_JAMMER_POWER_W, allow_inf_nan=False)]
 JammerHeight = Annotated[float, Field(ge=0, le=MAX_JAMMER_HEIGHT_M, allow_inf_nan=False)]
 
@@ -167,8 +168,37 @@ class Channel(_Strict):
         return len(self.level_edges_db) + 1
 
 
+class JammerPath(_Strict):
+    """A jammer on a vehicle: from its position through ``waypoints`` at a steady speed. The
+    drive starts afresh with each episode, so that every mission meets the same convoy."""
+
+    waypoints: list[tuple[Finite, Finite]] = Field(min_length=1)
+    speed_mps: Positive
+    # After the last waypoint: back to the start and round again (True), or stop there.
+    loop: bool = False
+
+
+class DutyCycle(_Strict):
+    """On for ``on_s``, then off for ``off_s``, over and over from ``offset_s`` into the cycle
+    at each episode's start."""
+
+    kind: Literal["duty"]
+    on_s: Positive
+    off_s: NonNegative
+    offset_s: NonNegative = 0.0
+
+
+class Reactive(_Strict):
+    """On while any flying UAV is within ``radius_m`` (horizontally) of the jammer: every UAV
+    in flight transmits, its uploads if nothing else."""
+
+    kind: Literal["reactive"]
+    radius_m: Positive
+
+
 class Jammer(_Strict):
-    """The jammer as configured; ``power_w`` is its nominal (label) power."""
+    """A jammer as configured; ``power_w`` is its nominal (label) power, ``x, y`` where it
+    stands or, with a path, where its drive starts. Without a schedule it is always on."""
 
     enabled: bool = True
     x: Finite
@@ -176,6 +206,13 @@ class Jammer(_Strict):
     power_w: JammerPower
     height_m: JammerHeight
     efficiency_db: Annotated[float, Field(le=0, allow_inf_nan=False)]
+    path: JammerPath | None = None
+    schedule: Annotated[DutyCycle | Reactive, Field(discriminator="kind")] | None = None
+
+    @property
+    def still(self) -> bool:
+        """Where it stands and whether it transmits never change within an episode."""
+        return self.path is None and self.schedule is None
 
 
 class Rewards(_Strict):
@@ -267,7 +304,8 @@ class Scenario(_Strict):
     uav: Uav
     timing: Timing
     channel: Channel
-    jammer: Jammer
+    # A scenario file's ``[jammer]`` section is the one-entry list of ``[[jammers]]``.
+    jammers: tuple[Jammer, ...] = Field(min_length=1, max_length=MAX_JAMMERS)
     rewards: Rewards
     missions: Missions
     policy: Policy
@@ -275,13 +313,28 @@ class Scenario(_Strict):
     online_map: OnlineMap
     shadowing: Shadowing | None = None
 
+    @model_validator(mode="before")
+    @classmethod
+    def _jammer_as_list(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "jammer" in data:
+            if "jammers" in data:
+                raise ValueError("give [jammer] or [[jammers]], not both")
+            data = {**data, "jammers": [data["jammer"]]}
+            del data["jammer"]
+        return data
+
+    @property
+    def jammer(self) -> Jammer:
+        """The first jammer: the one a single-jammer command or table sets, and whose height
+        and efficiency are every command's defaults."""
+        return self.jammers[0]
+
     @model_validator(mode="after")
     def _consistent(self) -> Scenario:
         for x, y in self.gbs.positions:
             if not self.area.contains(x, y):
                 raise ValueError(f"gbs.positions: ({x}, {y}) lies outside the area")
-        if not self.area.contains(self.jammer.x, self.jammer.y):
-            raise ValueError("jammer: position lies outside the area")
+        self._jammers_inside()
         width, height = self.missions.room(self.area)
         if width <= 0 or height <= 0:
             raise ValueError("missions.margin_m leaves no room inside the area")
@@ -300,6 +353,20 @@ class Scenario(_Strict):
                 raise ValueError(f"shadowing: the fields need a grid of {side} points per side "
                                  f"(at most {MAX_GRID_SIDE}): raise field_spacing_m")
         return self
+
+    def _jammers_inside(self) -> None:
+        for index, jammer in enumerate(self.jammers):
+            where = f"jammers.{index}" if len(self.jammers) > 1 else "jammer"
+            if not self.area.contains(jammer.x, jammer.y):
+                raise ValueError(f"{where}: position lies outside the area")
+            for x, y in [] if jammer.path is None else jammer.path.waypoints:
+                if not self.area.contains(x, y):
+                    raise ValueError(f"{where}.path: waypoint ({x:g}, {y:g}) lies outside the "
+                                     "area")
+            # Eq. (5) scales every jammer's power by one efficiency: the radio model's.
+            if jammer.efficiency_db != self.jammer.efficiency_db:
+                raise ValueError(f"{where}.efficiency_db: every jammer has the first one's "
+                                 f"({self.jammer.efficiency_db:g} dB)")
 
     def survey_world(self) -> dict[str, Any]:
         """What a no-jammer SINR map learned from a survey depends on: where the survey flies,
@@ -322,6 +389,7 @@ class Scenario(_Strict):
         """The same scenario with each ``"section.key"`` of ``changes`` set (and renamed
         ``name``), validated as a scenario file would be."""
         data = self.model_dump()
+        data["jammer"] = data["jammers"][0]  # what a single-jammer change names
         for dotted, value in changes.items():
             section, _, key = dotted.partition(".")
             values = data.get(section)
@@ -330,18 +398,22 @@ class Scenario(_Strict):
             values[key] = value
         if name is not None:
             data["name"] = name
+        data["jammers"] = [data.pop("jammer"), *data["jammers"][1:]]
         return Scenario.model_validate(data)
 
     def with_jammer(self, x: float, y: float, power_w: float,
                     height_m: float | None = None) -> Scenario:
-        """The same scenario with the jammer moved (its efficiency kept, and its height unless
-        given)."""
-        height = {} if height_m is None else {"jammer.height_m": height_m}
-        return self.changed({"jammer.enabled": True, "jammer.x": x, "jammer.y": y,
-                             "jammer.power_w": power_w, **height})
+        """The same scenario with one jammer standing still at (x, y), always on, in place of
+        all it had (the first one's efficiency kept, and its height unless given)."""
+        still = self.jammer.model_copy(update={
+            "enabled": True, "x": x, "y": y, "power_w": power_w, "path": None, "schedule": None,
+            **({} if height_m is None else {"height_m": height_m})})
+        return Scenario.model_validate({**self.model_dump(), "jammers": [still.model_dump()]})
 
     def without_jammer(self) -> Scenario:
-        return self.changed({"jammer.enabled": False})
+        """The same scenario with no jammer at all."""
+        off = self.jammer.model_copy(update={"enabled": False, "path": None, "schedule": None})
+        return Scenario.model_validate({**self.model_dump(), "jammers": [off.model_dump()]})
 
 
 def resolve_scenario_path(name_or_path: str | Path | None) -> Path:
@@ -371,7 +443,10 @@ def load_scenario(name_or_path: str | Path | None = None) -> Scenario:
         return Scenario.model_validate(data)
     except ValidationError as exc:
         first = exc.errors()[0]
-        field = ".".join(str(part) for part in first["loc"]) or "(top level)"
+        location = first["loc"]
+        if "jammer" in data and location[:2] == ("jammers", 0):
+            location = ("jammer", *location[2:])  # as the file names it
+        field = ".".join(str(part) for part in location) or "(top level)"
         problems = exc.error_count()
         more = f" (and {problems - 1} more)" if problems > 1 else ""
         raise ScenarioError(f"{path}: field {field}: {first['msg']}{more}") from None

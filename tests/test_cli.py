@@ -26,7 +26,7 @@ def test_scenario_show_json_has_the_acceptance_keys(capsys):
     assert len(data["gbs"]["positions"]) == 12
     assert "altitude_m" in data["uav"]
     assert {"path_loss_exponent", "noise_w", "sinr_threshold_db"} <= data["channel"].keys()
-    assert {"x", "y", "power_w", "height_m"} <= data["jammer"].keys()
+    assert {"x", "y", "power_w", "height_m"} <= data["jammers"][0].keys()
 
 
 def test_sinr_at_points_matches_the_reference(capsys, scenario):

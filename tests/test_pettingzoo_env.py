@@ -7,7 +7,7 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 from shared.outcomes import OUTCOME_LABELS
-from shared.scenario import SCENARIO_DIR, ScenarioError, load_scenario
+from shared.scenario import MAX_JAMMERS, SCENARIO_DIR, ScenarioError, load_scenario
 from world_sim import parallel_env
 
 FINAL = {"success", "disconnection", "collision", "timeout"}
@@ -122,12 +122,49 @@ def test_heading_for_destination_ends_every_mission(jammer):
         assert "success" in outcomes.values()
 
 
+def jammer_slots(env) -> np.ndarray:
+    """The state's tail: [x, y, power_w] of each jammer slot."""
+    return env.state()[-3 * MAX_JAMMERS:].reshape(MAX_JAMMERS, 3)
+
+
+def test_the_jammers_option_sets_several_and_moves_them_along_their_paths():
+    env = parallel_env()
+    convoy = {"x": -40.0, "y": 0.0, "power_w": 0.5,
+              "path": {"waypoints": [[40.0, 0.0]], "speed_mps": 3.0}}
+    env.reset(seed=4, options={"jammers": [(10.0, -20.0, 1.0), convoy]})
+    assert jammer_slots(env)[:2].tolist() == [[10.0, -20.0, 1.0], [-40.0, 0.0, 0.5]]
+    for _ in range(10):
+        env.step({})
+    # 10 steps of the scenario's step, at 3 m/s along +x; the still one has stayed.
+    moved = -40.0 + 3.0 * 10 * env.scenario.timing.step_s
+    assert jammer_slots(env)[1, 0] == pytest.approx(moved, abs=1e-9)
+    assert jammer_slots(env)[0].tolist() == [10.0, -20.0, 1.0]
+    env.reset(options={"jammers": []})
+    assert not jammer_slots(env).any()
+
+
+@pytest.mark.parametrize(("jammers", "said"), [
+    ([(0.0, 0.0, 1.0)] * 5, "at most 4"),
+    ([{"x": 0.0, "y": 0.0, "power_w": 1.0,
+       "path": {"waypoints": [[500.0, 0.0]], "speed_mps": 3.0}}], "outside the area"),
+    ([{"x": 0.0, "y": 0.0, "power_w": 1.0,
+       "path": {"waypoints": [[10.0, 0.0]], "speed_mps": -3.0}}], "speed_mps"),
+    ([{"x": 0.0, "y": 0.0, "power_w": 1.0,
+       "schedule": {"kind": "duty", "on_s": 0.0, "off_s": 5.0}}], "on_s"),
+])
+def test_bad_jammers_are_refused_in_one_line(jammers, said):
+    env = parallel_env()
+    with pytest.raises(ValueError, match=said) as caught:
+        env.reset(seed=0, options={"jammers": jammers})
+    assert "\n" not in str(caught.value)
+
+
 def test_hovering_times_out_and_jammer_option():
     env = parallel_env()
     _, jammed = env.reset(seed=4, options={"jammer": (0.0, 0.0, 1.0)})
-    assert env.state()[-1] == 1.0
+    assert jammer_slots(env)[:, 2].tolist() == [1.0, 0.0, 0.0, 0.0]
     _, clear = env.reset(seed=4, options={"jammer": None})
-    assert env.state()[-1] == 0.0
+    assert not jammer_slots(env).any()
     for agent in env.possible_agents:
         assert clear[agent]["sinr_db"] >= jammed[agent]["sinr_db"]
     truncated = set()

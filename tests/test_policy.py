@@ -110,7 +110,7 @@ def test_raster_map_agrees_with_the_exact_map(scenario):
     rng = np.random.default_rng(0)
     xy = rng.uniform(-50, 50, (4, 500, 2))
     radio = RadioModel(scenario)
-    jammer = JammerParams(*(float(v[0, 0]) for v in world.jammer([0])))
+    jammer = JammerParams(*(float(v[0, 0]) for v in world.jammer([0])[0]))
     exact = np.stack([radio.evaluate(xy[row], jammer if row < 2 else None).level
                       for row in range(4)])
     assert (maps.level_at(xy) == exact).mean() > 0.98
@@ -333,7 +333,7 @@ def test_raster_maps_keep_the_recent_settings_and_never_one_in_flight(scenario):
     first = maps.raster(settings[0]).levels.copy()
     for setting in settings[1:]:
         maps.raster(setting)
-    assert list(maps.cache) == [tuple(settings[1]), tuple(settings[2])]
+    assert list(maps.cache) == [(tuple(settings[1]),), (tuple(settings[2]),)]
     np.testing.assert_array_equal(maps.raster(settings[0]).levels, first)
     assert len(maps.cache) == 2
 

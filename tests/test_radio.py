@@ -14,8 +14,9 @@ from tests.conftest import variant
 coordinate = st.floats(-50, 50, allow_nan=False)
 
 
-def reference_sinr_db(scenario, x, y, jammer=None):
-    """Eq. (1)-(5) written out term by term, one GBS at a time (paper's readings)."""
+def reference_sinr_db(scenario, x, y, jammer=None, more_jammers=()):
+    """Eq. (1)-(5) written out term by term, one GBS and one jammer at a time (paper's
+    readings); the jammers' interference powers add up in Eq. (3)'s denominator."""
     gbs, channel = scenario.gbs, scenario.channel
     hv, hb, alpha = scenario.uav.altitude_m, gbs.height_m, channel.path_loss_exponent
     powers = []
@@ -28,12 +29,11 @@ def reference_sinr_db(scenario, x, y, jammer=None):
         loss = (d**2 + (hb - hv) ** 2) ** (alpha / 2)
         powers.append(gbs.power_w * g_b * g_v / loss)
     interference = 0.0
-    if jammer is not None:
-        jx, jy, jp, jh = jammer
+    for jx, jy, jp, jh in [] if jammer is None else [jammer, *more_jammers]:
         dj = math.hypot(x - jx, y - jy)
         slant = math.sqrt(dj**2 + (jh - hv) ** 2)
         efficiency = 10 ** (scenario.jammer.efficiency_db / 10)
-        interference = jp * efficiency * slant ** (-alpha) * (hv - jh) / slant
+        interference += jp * efficiency * slant ** (-alpha) * (hv - jh) / slant
     k = int(np.argmax(powers))
     channels = gbs.channels or [0] * len(powers)
     co_channel = sum(p for p, c in zip(powers, channels, strict=True) if c == channels[k])
@@ -99,13 +99,13 @@ def test_levels_follow_edges(scenario):
 def test_jammer_opens_a_local_hole_not_a_blank_area(scenario):
     radio = RadioModel(scenario)
     _, _, clear = radio.grid(scenario, 101, None)
-    _, _, jammed = radio.grid(scenario, 101, radio.default_jammer)
+    _, _, jammed = radio.grid(scenario, 101, radio.default_jammers)
     clear_share, jammed_share = (clear.level > 0).mean(), (jammed.level > 0).mean()
     assert 0.7 < clear_share < 0.95
     assert 0.5 < jammed_share < clear_share - 0.03
     # The hole is local: far corners keep their coverage.
     corner = np.array([[-37.5, 33.0], [37.5, -33.0]])
-    assert (radio.evaluate(corner, radio.default_jammer).level > 0).all()
+    assert (radio.evaluate(corner, radio.default_jammers).level > 0).all()
 
 
 @settings(max_examples=60, deadline=None)

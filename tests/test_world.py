@@ -186,5 +186,5 @@ def test_a_world_that_reports_the_sinr_reports_the_same_levels_beside_it():
         assert np.all(radio.level_of(reported - 0.25) <= level)
         assert np.all(level <= radio.level_of(reported + 0.25))
         truth = radio.evaluate(reporting_world.measured_xy[reporting_world.measured],
-                               radio.default_jammer).sinr_db
+                               radio.default_jammers).sinr_db
         assert np.abs(reported - truth).max() < 6 * reporting.uav.measurement_noise_db + 0.25

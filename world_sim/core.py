@@ -1,6 +1,6 @@
 """The vectorized world: E independent environments x J UAVs stepped together with numpy.
 
-It owns the truth (positions, the jammer, the SINR each UAV measures) and knows no policy: it
+It owns the truth (positions, the jammers, the SINR each UAV measures) and knows no policy: it
 takes commanded speeds and headings, enforces the kinematic limits, and books per-UAV outcomes
 that are exclusive and final. Training, evaluation and the world process all run this engine.
 A UAV whose mission has ended leaves the airspace (landed or lost): it no longer moves, is no
@@ -16,13 +16,14 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
+from shared.jammer_motion import position_at, transmits_at
 from shared.kinematics import ActionSet, closest_approach, velocity_of
 from shared.neighbours import nearby_others
 from shared.observation import Observation, decision_reach
 from shared.outcomes import Outcome, arrivals, disconnections
 from shared.radio import JammerParams, RadioModel, RadioReading
 from shared.rewards import RewardModel
-from shared.scenario import Scenario
+from shared.scenario import MAX_JAMMERS, Jammer, Scenario
 
 _CANDIDATES_PER_DRAW = 64
 _RECEIVER_NOISE = 1  # second word of an episode's receiver-noise seed: a stream of its own
@@ -175,37 +176,96 @@ class VectorWorld:
         self.measured_sinr_db = np.full((e, j, samples), np.nan)  # NaN: levels only
         self.measured = np.zeros((e, j), dtype=bool)
         self._receiver_noise = [np.random.default_rng(0) for _ in range(e)]
-        default = self.radio.default_jammer
-        self.jammer_x = np.full(e, default.x if default else 0.0)
-        self.jammer_y = np.full(e, default.y if default else 0.0)
-        self.jammer_power = np.full(e, default.power_w if default else 0.0)
-        self.jammer_height = np.full(e, scenario.jammer.height_m)
+        # The jammers where they are now, one column per slot (a slot off: power 0); the
+        # environments whose jammers move or keep a schedule are placed again every step.
+        slots = len(scenario.jammers)
+        self.jammer_x = np.zeros((e, slots))
+        self.jammer_y = np.zeros((e, slots))
+        self.jammer_power = np.zeros((e, slots))
+        self.jammer_height = np.full((e, slots), scenario.jammer.height_m)
+        self._driven: dict[int, tuple[Jammer, ...]] = {}
+        self.set_jammers(slice(None), scenario.jammers)
 
     # -- control ---------------------------------------------------------------------------
     def set_jammer(self, env_ids, jammer: JammerParams | None) -> None:
-        """Move, re-power or (None) switch off the jammer of the given environments."""
+        """One still jammer in the given environments, in place of any they had (None: no
+        jammer); its fields may be arrays, one value per environment."""
+        env_ids = self._env_list(env_ids)
+        self._clear_jammers(env_ids)
         if jammer is None:
-            self.jammer_power[env_ids] = 0.0
             return
-        # A NaN SINR would read as the best level (levels are found by sorting): refused
-        # here, where every caller's jammer enters the world.
-        if not all(np.isfinite(value).all() for value in jammer) or (
-                np.min(jammer.power_w) < 0 or np.min(jammer.height_m) < 0):
-            raise ValueError(f"jammer {tuple(jammer)}: position, power and height must be "
-                             "finite, power and height >= 0")
-        self.jammer_x[env_ids] = jammer.x
-        self.jammer_y[env_ids] = jammer.y
-        self.jammer_power[env_ids] = jammer.power_w
-        self.jammer_height[env_ids] = jammer.height_m
+        _check_jammer(jammer)
+        self.jammer_x[env_ids, 0] = jammer.x
+        self.jammer_y[env_ids, 0] = jammer.y
+        self.jammer_power[env_ids, 0] = jammer.power_w
+        self.jammer_height[env_ids, 0] = jammer.height_m
 
-    def jammer(self, env_ids=slice(None)) -> JammerParams:
-        """The jammers of the given environments as arrays shaped (n, 1) for (n, J) points."""
-        return JammerParams(
-            self.jammer_x[env_ids, None],
-            self.jammer_y[env_ids, None],
-            self.jammer_power[env_ids, None],
-            self.jammer_height[env_ids, None],
-        )
+    def set_jammers(self, env_ids, jammers: tuple[Jammer, ...]) -> None:
+        """The jammers of the given environments, moving or scheduled as configured, in place
+        of any they had; placed where they are at each environment's time into its episode."""
+        if len(jammers) > MAX_JAMMERS:
+            raise ValueError(f"{len(jammers)} jammers: at most {MAX_JAMMERS}")
+        if len(jammers) > self.jammer_x.shape[1]:
+            self._widen_jammer_slots(len(jammers))
+        env_ids = self._env_list(env_ids)
+        self._clear_jammers(env_ids)
+        for slot, jammer in enumerate(jammers):
+            self.jammer_height[env_ids, slot] = jammer.height_m
+            if jammer.still and jammer.enabled:
+                self.jammer_x[env_ids, slot] = jammer.x
+                self.jammer_y[env_ids, slot] = jammer.y
+                self.jammer_power[env_ids, slot] = jammer.power_w
+        if not all(jammer.still for jammer in jammers):
+            self._driven.update({env: tuple(jammers) for env in env_ids})
+            self._place_driven_jammers(env_ids, self.steps, self.position, self.active)
+
+    def _env_list(self, env_ids) -> list[int]:
+        return np.arange(self.num_envs)[env_ids].reshape(-1).tolist()
+
+    def _clear_jammers(self, env_ids: list[int]) -> None:
+        for env in env_ids:
+            self._driven.pop(env, None)
+        self.jammer_x[env_ids] = self.jammer_y[env_ids] = self.jammer_power[env_ids] = 0.0
+        self.jammer_height[env_ids] = self.scenario.jammer.height_m
+
+    def _widen_jammer_slots(self, slots: int) -> None:
+        extra = slots - self.jammer_x.shape[1]
+        for name in ("jammer_x", "jammer_y", "jammer_power", "jammer_height"):
+            value = getattr(self, name)
+            setattr(self, name, np.pad(value, ((0, 0), (0, extra)), constant_values=(
+                self.scenario.jammer.height_m if name == "jammer_height" else 0.0)))
+
+    def _place_driven_jammers(self, env_ids, steps: np.ndarray, position: np.ndarray,
+                              flying: np.ndarray) -> None:
+        """Each moving or scheduled jammer of ``env_ids`` where it is, and on or off, after
+        ``steps`` (E,) steps of its episode; a reactive one hears the UAVs ``flying`` (E, J) at
+        ``position`` (E, J, 2)."""
+        for env in env_ids:
+            jammers = self._driven.get(env)
+            if jammers is None:
+                continue
+            t = float(steps[env]) * self.dt
+            flying_xy = position[env][flying[env]]
+            for slot, jammer in enumerate(jammers):
+                x, y = position_at(jammer, t)
+                self.jammer_x[env, slot], self.jammer_y[env, slot] = x, y
+                self.jammer_power[env, slot] = (
+                    jammer.power_w if transmits_at(jammer, t, flying_xy) else 0.0)
+
+    def jammer(self, env_ids=slice(None)) -> tuple[JammerParams, ...]:
+        """The jammers of the given environments, one per slot, as arrays shaped (n, 1) for
+        (n, J) points."""
+        return tuple(JammerParams(self.jammer_x[env_ids, slot, None],
+                                  self.jammer_y[env_ids, slot, None],
+                                  self.jammer_power[env_ids, slot, None],
+                                  self.jammer_height[env_ids, slot, None])
+                     for slot in range(self.jammer_x.shape[1]))
+
+    def jammers_now(self, env: int) -> tuple[tuple[float, float, float, float], ...]:
+        """(x, y, power, height) of each jammer transmitting in environment ``env`` now."""
+        return tuple((float(x), float(y), float(power), float(height)) for x, y, power, height
+                     in zip(self.jammer_x[env], self.jammer_y[env], self.jammer_power[env],
+                            self.jammer_height[env], strict=True) if power > 0)
 
     def reset(self, env_ids, seeds) -> None:
         """Start new episodes in ``env_ids``; episode ``k`` uses ``seeds[k]`` alone."""
@@ -223,6 +283,7 @@ class VectorWorld:
         self.measured[env_ids] = False
         self.status[env_ids] = int(Outcome.ACTIVE)
         self.steps[env_ids] = 0
+        self._place_driven_jammers(env_ids.tolist(), self.steps, self.position, self.active)
         reading = self.radio.evaluate(self.position[env_ids], self.jammer(env_ids))
         self.sinr_db[env_ids] = reading.sinr_db
         self.level[env_ids] = reading.level
@@ -251,9 +312,9 @@ class VectorWorld:
         env, uav = np.nonzero(active)
         points = xy[env, uav]
         per_point = (-1,) + (1,) * (points.ndim - 2)
-        jammer = JammerParams(*(np.asarray(field)[env].reshape(per_point)
-                                for field in self.jammer()))
-        some = self.radio.evaluate(points, jammer)
+        jammers = [JammerParams(*(np.asarray(field)[env].reshape(per_point) for field in slot))
+                   for slot in self.jammer()]
+        some = self.radio.evaluate(points, jammers)
         every = RadioReading(*(np.zeros(xy.shape[:-1], dtype=field.dtype) for field in some))
         for whole, part in zip(every, some, strict=True):
             whole[env, uav] = part
@@ -290,6 +351,7 @@ class VectorWorld:
         arrived, new_position = arrivals(self.position, velocity, self.destination, dt,
                                          self.scenario.uav.arrival_tolerance_m,
                                          may_arrive=active & ~collided)
+        self._place_driven_jammers(self._driven, self.steps + 1, new_position, active)
         reading = self._radio_of_active(new_position, active)
         below, disconnected = disconnections(reading.level, self.below_steps,
                                              self.disconnection_limit,
@@ -322,6 +384,15 @@ class VectorWorld:
         # hears nothing more from the world.
         self.measured &= ~finished
         return StepResult(reward, finished, ~self.active.any(axis=1))
+
+
+def _check_jammer(jammer: JammerParams) -> None:
+    """A NaN SINR would read as the best level (levels are found by sorting): refused here,
+    where every caller's jammer enters the world."""
+    if not all(np.isfinite(value).all() for value in jammer) or (
+            np.min(jammer.power_w) < 0 or np.min(jammer.height_m) < 0):
+        raise ValueError(f"jammer {tuple(jammer)}: position, power and height must be "
+                         "finite, power and height >= 0")
 
 
 def fleet_observation(world: VectorWorld) -> Observation:

@@ -34,9 +34,12 @@ Seeding: ``reset(seed=s)`` starts episode ``episode_seed(s, 0)``; each later ``r
 a seed starts the next episode of the same run, ``episode_seed(s, k)``. Without any seed the
 run's master seed is drawn at random (and exposed as ``master_seed``).
 
-Jammer: ``reset(options={"jammer": (x, y, power_w)})`` moves/re-powers the jammer (height from
-the scenario), ``{"jammer": None}`` switches it off. The setting persists over later resets
-until changed; the initial jammer is the scenario's.
+Jammers: ``reset(options={"jammer": (x, y, power_w)})`` sets one still jammer (height from the
+scenario), ``{"jammer": None}`` switches every jammer off, and ``{"jammers": [...]}`` sets up to
+4, each ``(x, y, power_w)`` or a mapping of a scenario's ``[[jammers]]`` entry (with a ``path``
+or ``schedule``). The setting persists over later resets until changed; the initial jammers are
+the scenario's. The global state ends with ``[x, y, power_w]`` of each of 4 jammer slots
+(power 0: off or absent), where they are now.
 """
 
 from __future__ import annotations
@@ -48,10 +51,11 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
+from pydantic import ValidationError
 
 from shared.outcomes import Outcome
 from shared.radio import JammerParams
-from shared.scenario import SEED_MAX, Scenario, load_scenario
+from shared.scenario import MAX_JAMMERS, SEED_MAX, Jammer, Scenario, load_scenario
 from world_sim.core import VectorWorld, episode_seed
 
 # The observation's entries, in order (the table above): the UAV's own, then each other's.
@@ -120,7 +124,7 @@ class JamnavParallelEnv(ParallelEnv):
             agent: spaces.Discrete(len(self.action_set)) for agent in self.possible_agents
         }
         self.state_space = spaces.Box(
-            -np.inf, np.inf, shape=(self.num_uavs * (len(OWN_ENTRIES) + 1) + 3,),
+            -np.inf, np.inf, shape=(self.num_uavs * (len(OWN_ENTRIES) + 1) + 3 * MAX_JAMMERS,),
             dtype=np.float32
         )
 
@@ -167,6 +171,8 @@ class JamnavParallelEnv(ParallelEnv):
                              "{'jammer': (x, y, power_w)}")
         if options and "jammer" in options:
             self.world.set_jammer(0, self._jammer_from(options["jammer"]))
+        if options and "jammers" in options:
+            self.world.set_jammers(0, self._jammers_from(options["jammers"]))
         self.world.reset([0], [episode_seed(self.master_seed, self._episode)])
         self.agents = self.possible_agents[:]
         own = self._own_entries()
@@ -187,6 +193,32 @@ class JamnavParallelEnv(ParallelEnv):
             ) from None
         # VectorWorld.set_jammer refuses what is not finite or of negative power.
         return JammerParams(x, y, power_w, self.scenario.jammer.height_m)
+
+    def _jammers_from(self, value: Any) -> tuple[Jammer, ...]:
+        """Each entry as a scenario's jammer (the first one's height and efficiency unless
+        given), checked as a scenario file would be: inside the area, at most 4."""
+        if not isinstance(value, list | tuple):
+            raise ValueError(f"options['jammers'] must be a list, got {value!r}")
+        if not value:
+            return ()
+        entries = []
+        for entry in value:
+            if isinstance(entry, dict):
+                entries.append({**self.scenario.jammer.model_dump(), "path": None,
+                                "schedule": None, **entry})
+            elif entry is None:
+                raise ValueError("options['jammers']: an entry is None (no jammers: an empty list)")
+            else:
+                x, y, power_w = self._jammer_from(entry)[:3]
+                entries.append({**self.scenario.jammer.model_dump(), "x": x, "y": y,
+                                "power_w": power_w, "path": None, "schedule": None})
+        try:
+            return Scenario.model_validate({**self.scenario.model_dump(),
+                                            "jammers": entries}).jammers
+        except ValidationError as exc:
+            first = exc.errors()[0]
+            where = ".".join(str(part) for part in first["loc"])
+            raise ValueError(f"options['jammers']: {where}: {first['msg']}") from None
 
     def step(
         self, actions: dict[str, Any]
@@ -273,11 +305,13 @@ class JamnavParallelEnv(ParallelEnv):
 
     def state(self) -> np.ndarray:
         """Global state: per UAV the own entries of its observation plus its outcome code,
-        then the jammer [x, y, power_w] (power 0 = off)."""
+        then [x, y, power_w] of each jammer slot (power 0 = off or absent)."""
         w = self.world
         per_uav = np.concatenate([self._own_entries(), w.status[0, :, None]], axis=1)
-        jammer = [w.jammer_x[0], w.jammer_y[0], w.jammer_power[0]]
-        return np.concatenate([per_uav.ravel(), jammer]).astype(np.float32)
+        jammers = np.zeros((MAX_JAMMERS, 3))
+        slots = w.jammer_x.shape[1]
+        jammers[:slots] = np.stack([w.jammer_x[0], w.jammer_y[0], w.jammer_power[0]], axis=1)
+        return np.concatenate([per_uav.ravel(), jammers.ravel()]).astype(np.float32)
 
     # -- rendering ---------------------------------------------------------------------------
     def render(self) -> np.ndarray | None:
@@ -311,8 +345,8 @@ class JamnavParallelEnv(ParallelEnv):
         ax.set_axis_off()
         gbs = np.asarray(self.scenario.gbs.positions)
         ax.scatter(gbs[:, 0], gbs[:, 1], marker="^", c="grey", s=20)
-        if w.jammer_power[0] > 0:
-            ax.scatter([w.jammer_x[0]], [w.jammer_y[0]], marker="x", c="red", s=40)
+        for x, y, _, _ in w.jammers_now(0):
+            ax.scatter([x], [y], marker="x", c="red", s=40)
         colors = ["tab:blue", "tab:green", "tab:red", "tab:purple", "tab:orange", "tab:brown"]
         for j in range(self.num_uavs):
             color = colors[j % len(colors)]
