@@ -1,7 +1,7 @@
-"""The README's two pictures of the operator's console (docs/images/console_*.png), taken in
-the headless Chromium the console's benchmark drives: a real-time run whose jammer is swapped
-to (25, -10), 1 W, 25 s of flight in; its page once the cloud serves a map corrected by an
-estimate of the swapped jammer, then with the true map shown instead.
+"""The two pictures of the operator's console (docs/images/console_*.png, docs/console.md),
+taken in the headless Chromium the console's benchmark drives: a real-time run whose jammer is
+swapped to (25, -10), 1 W, 25 s of flight in; its page once the cloud serves a map corrected by
+an estimate of the swapped jammer, then with the true map shown instead.
 
     python -m benchmarks.console_images [--out docs/images]
 """

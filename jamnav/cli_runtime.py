@@ -586,5 +586,5 @@ def register(commands) -> None:
                              "patterns, e.g. 'agent-*'; default: every role of the file)")
     router.add_argument("--zenoh-config", default=None, metavar="FILE",
                         help="zenoh configuration to start from, e.g. TLS certificates for "
-                             "links between hosts (README, Security)")
+                             "links between hosts (docs/security.md)")
     router.set_defaults(handler=_guarded(cmd_router))

@@ -1,8 +1,8 @@
-"""The packages depend on one another one way (README, "What is in the box"): every import of
-every module, those inside functions included, read from its source, names a package its own
-may use. The command line (``jamnav``) wires them all together and is not held. Nor do any
-modules import one another round a cycle, not even through an import deferred into a function:
-the order a reader finds in the imports is the order they load in."""
+"""The packages depend on one another one way (ARCHITECTURE.md, "What is in the box"): every
+import of every module, those inside functions included, read from its source, names a package
+its own may use. The command line (``jamnav``) wires them all together and is not held. Nor do
+any modules import one another round a cycle, not even through an import deferred into a
+function: the order a reader finds in the imports is the order they load in."""
 
 from __future__ import annotations
 
