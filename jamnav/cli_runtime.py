@@ -102,7 +102,7 @@ def _survey_map(args: argparse.Namespace, scenario) -> Path | None:
 def _second_router(args: argparse.Namespace, endpoint: str) -> tuple[str | None, str | None]:
     """``--routers 2``: the agents' router and the TLS link between the routers, by default
     on the two ports after ``endpoint``."""
-    from jamnav.supervisor import next_endpoint
+    from jamnav.routers import next_endpoint
 
     if args.routers == 1:
         if args.agent_endpoint or args.link_endpoint:
@@ -325,9 +325,9 @@ def _new_recording(option: str, text: str) -> Path:
 
 def _new_recording_of_up(text: str) -> Path:
     """``_new_recording`` for ``jamnav up --record``, whose restarted recorder writes beside
-    it (``supervisor.recording_path``): such a file left by an earlier run is refused now,
+    it (``recording.recording_path``): such a file left by an earlier run is refused now,
     not by the recorder in the middle of the run."""
-    from jamnav.supervisor import restarted_recordings
+    from jamnav.recording import restarted_recordings
 
     path = _new_recording("--record", text)
     if earlier := restarted_recordings(path):
