@@ -67,6 +67,8 @@ def scenario_with_jammer(args: argparse.Namespace) -> Scenario:
 
 # -- checks -------------------------------------------------------------------------------------
 def comma_numbers(text: str, count: int, what: str) -> list[float]:
+    """The ``count`` finite numbers of one comma-separated argument, which ``what`` names in
+    the error."""
     parts = text.split(",")
     try:
         values = [float(part) for part in parts]
