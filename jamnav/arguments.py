@@ -1,21 +1,82 @@
-"""Checks of command-line arguments shared by every ``jamnav`` command: a bad value is refused
-with one line before any work starts, never found deep inside as a traceback."""
+"""Command-line arguments shared by the ``jamnav`` commands: the options several commands take
+(``--scenario``, ``--jammer``) and how they are read, and the checks of counts, ranges, output
+paths and model files. A bad value is refused with one line before any work starts, never
+found deep inside as a traceback."""
 
 from __future__ import annotations
 
+import argparse
 import math
 import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-from shared.messages import JAMMER_LIMITS, JammerCommand
+from shared.messages import JAMMER_LIMITS, JammerCommand, JammerInfo
+from shared.scenario import Scenario, load_scenario, resolve_scenario_path
 
 
 class UsageError(Exception):
     """A problem with the user's input, reported as one line (exit 2)."""
 
 
+# -- --scenario and --jammer --------------------------------------------------------------------
+def add_scenario(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--scenario", default=None, metavar="NAME|PATH",
+        help="scenario name under scenarios/ or a TOML file (default: icc2021)",
+    )
+
+
+def add_jammer(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument(
+        "--jammer", metavar="X,Y,P[,H]",
+        help="jammer position (m), nominal power (W) and height (m, default: the scenario's)",
+    )
+    group.add_argument("--no-jammer", action="store_true", help="no jammer at all")
+
+
+def scenario_argument(args: argparse.Namespace) -> Scenario:
+    """load_scenario, with a file that exists but cannot be read as one line too."""
+    try:
+        return load_scenario(args.scenario)
+    except OSError as exc:
+        raise UsageError(f"{resolve_scenario_path(args.scenario)}: {exc.strerror}") from None
+
+
+def scenario_with_jammer(args: argparse.Namespace) -> Scenario:
+    """The scenario named by --scenario with --jammer/--no-jammer applied and validated."""
+    scenario = scenario_argument(args)
+    if getattr(args, "no_jammer", False):
+        return scenario.without_jammer()
+    if getattr(args, "jammer", None) is not None:
+        try:
+            jammer = JammerInfo.parse(args.jammer, scenario.jammer.height_m)
+        except ValueError as exc:
+            raise UsageError(f"--{exc}") from None
+        if not scenario.area.contains(jammer.x, jammer.y):
+            area = scenario.area
+            raise UsageError(
+                f"--jammer {args.jammer!r}: position outside the area "
+                f"[{area.x_min:g}, {area.x_max:g}] x [{area.y_min:g}, {area.y_max:g}]"
+            )
+        return scenario.with_jammer(jammer.x, jammer.y, jammer.power_w, jammer.height_m)
+    return scenario
+
+
+# -- checks -------------------------------------------------------------------------------------
+def comma_numbers(text: str, count: int, what: str) -> list[float]:
+    """The ``count`` finite numbers of one comma-separated argument, which ``what`` names in
+    the error."""
+    parts = text.split(",")
+    try:
+        values = [float(part) for part in parts]
+    except ValueError:
+        raise UsageError(f"{what} {text!r}: expected {count} comma-separated numbers") from None
+    if len(values) != count or not all(math.isfinite(v) for v in values):
+        raise UsageError(f"{what} {text!r}: expected {count} finite comma-separated numbers")
+    return values
 
 
 def check_range(
@@ -63,6 +124,16 @@ def output_path(
     except OSError as exc:
         raise UsageError(f"{option} {text}: cannot write in {existing} "
                          f"({exc.strerror or exc})") from None
+    return path
+
+
+def new_recording(option: str, text: str) -> Path:
+    """``output_path`` for a recording, which is never written over: a file there (or a link
+    to one) is refused now."""
+    path = output_path(option, text)
+    if path.exists():
+        link = " (a link)" if path.is_symlink() else ""
+        raise UsageError(f"{option} {text}: exists{link}; choose another name or remove it")
     return path
 
 

@@ -48,14 +48,9 @@ from typing import Any, TextIO
 import zenoh
 
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
-from jamnav.supervisor import (
-    OUTBOX_DIR,
-    Child,
-    Supervisor,
-    UpConfig,
-    check_endpoint_free,
-    summary_table,
-)
+from jamnav.routers import check_endpoint_free
+from jamnav.run_report import summary_table
+from jamnav.supervisor import OUTBOX_DIR, Child, Supervisor, UpConfig
 from shared.measurements import MeasurementSpec
 from shared.messages import ProcessStatus
 from shared.resources import resident_mib

@@ -1,6 +1,6 @@
-"""The runtime's sub-commands of ``jamnav``: ``up``, ``jammer {set,off,show}``, ``status``,
-``console``, ``record``, ``replay`` and ``router``. ``register`` adds them to the parser of
-``jamnav/cli.py``.
+"""The ``jamnav`` commands that work with a running system: ``console``, ``record``,
+``replay``, ``jammer {set,off,show}`` and ``status``; and ``router``, a router of one (what
+``jamnav up`` starts, and what links the hosts of a system spread over several).
 
 Every command finds the running system through its router: ``--endpoint``, else
 $JAMNAV_ENDPOINT, else tcp/127.0.0.1:7447 (where ``jamnav up`` puts it). A mistake in the
@@ -16,25 +16,11 @@ import os
 import re
 import sys
 import threading
-import time
 from pathlib import Path
 
-from jamnav.arguments import (
-    UsageError,
-    check_fleet,
-    check_range,
-    jammer_command,
-    output_path,
-    survey_map_argument,
-)
+from jamnav.arguments import UsageError, check_range, jammer_command, new_recording
 from shared.messages import mapper_summary
-from shared.scenario import (
-    MAX_UAVS,
-    SEED_MAX,
-    ScenarioError,
-    load_scenario,
-)
-from shared.shipped import VALUE_NET_HELP, value_net_for, value_net_path
+from shared.scenario import ScenarioError, load_scenario
 from shared.topics import (
     DEFAULT_ENDPOINT,
     ENDPOINT_ENV,
@@ -43,8 +29,6 @@ from shared.topics import (
     endpoint_from,
 )
 
-DEFAULT_SWAP_TO = "25,-10,1"  # Table I's second setting
-DEFAULT_RATE = 10.0
 AGENT_LINES = 8  # ``jamnav status`` sums up more agents than this in one line
 _ROUTER_ID = re.compile(r"^[A-Za-z0-9_-]+$")
 
@@ -54,7 +38,7 @@ def _fail(message: str, code: int) -> int:
     return code
 
 
-def _guarded(handler):
+def guarded(handler):
     """One-line errors instead of tracebacks: exit 2 for bad input, 1 for an absent system."""
 
     def run(args: argparse.Namespace) -> int:
@@ -68,125 +52,6 @@ def _guarded(handler):
             return _fail(str(exc), 1)
 
     return run
-
-
-# -- up -----------------------------------------------------------------------------------------
-def _check_value_network(path: str, scenario) -> None:
-    """The file must be a value network this scenario's agents can fly with: found out now,
-    not by a cloud that refuses to start once everything runs."""
-    from cloud_service.evaluation import EvaluationError, load_policy
-
-    try:
-        load_policy(scenario, value_net_path(path))
-    except EvaluationError as exc:
-        raise UsageError(f"--model: {exc}") from None
-
-
-def _survey_map(args: argparse.Namespace, scenario) -> Path | None:
-    """The survey map the cloud starts the online map from: ``--sinr-map``, checked now, or
-    the shipped one of the scenario's radio world; None for the other maps."""
-    from shared.survey_maps import NoSurveyMapError, sinr_map_for
-
-    if args.map != "online":
-        if args.sinr_map is not None:
-            raise UsageError("--sinr-map is where the online map starts: it needs --map online")
-        return None
-    if args.sinr_map is not None:
-        return survey_map_argument("--sinr-map", args.sinr_map, scenario)
-    try:
-        return sinr_map_for(scenario)
-    except NoSurveyMapError as exc:
-        raise UsageError(str(exc)) from None
-
-
-def _second_router(args: argparse.Namespace, endpoint: str) -> tuple[str | None, str | None]:
-    """``--routers 2``: the agents' router and the TLS link between the routers, by default
-    on the two ports after ``endpoint``."""
-    from jamnav.supervisor import next_endpoint
-
-    if args.routers == 1:
-        if args.agent_endpoint or args.link_endpoint:
-            raise UsageError("--agent-endpoint and --link-endpoint place the second router: "
-                             "add --routers 2")
-        return None, None
-    agents = endpoint_from(args.agent_endpoint or next_endpoint(endpoint, 1))
-    link = endpoint_from(args.link_endpoint or next_endpoint(endpoint, 2, "tls"))
-    if not link.startswith("tls/"):
-        raise UsageError(f"--link-endpoint {link!r}: the routers link over TLS (tls/HOST:PORT)")
-    ports = [e.partition("/")[2] for e in (endpoint, agents, link)]
-    if len(set(ports)) < len(ports):
-        raise UsageError("--endpoint, --agent-endpoint and --link-endpoint need three "
-                         "different ports")
-    return agents, link
-
-
-def cmd_up(args: argparse.Namespace) -> int:
-    from jamnav.console import listen
-    from jamnav.supervisor import UpConfig, up
-    from shared import access
-    from shared.messages import JammerInfo
-    from world_sim.process import initial_jammer
-
-    scenario = load_scenario(args.scenario)
-    uavs = scenario.missions.uav_count if args.uavs is None else args.uavs
-    check_range("--uavs", uavs, 1, MAX_UAVS)
-    check_range("--episodes", args.episodes, 1)
-    check_range("--seed", args.seed, 0, SEED_MAX)
-    check_fleet("--uavs", uavs, scenario, args.seed)
-    for name in ("duration", "rate", "deadline", "swap_jammer_at"):
-        check_range(f"--{name.replace('_', '-')}", getattr(args, name), 0, above=True)
-    if args.rate is not None and not args.realtime:
-        raise UsageError("--rate sets the pace of --realtime; a lockstep run goes as fast as "
-                         "its agents (see --deadline)")
-    initial_jammer(scenario, args.jammer, args.no_jammer)
-    if args.swap_to is not None and args.swap_jammer_at is None:
-        raise UsageError("--swap-to says where --swap-jammer-at moves the jammer: give both")
-    swap_to = args.swap_to or DEFAULT_SWAP_TO
-    if swap_to != "off":
-        swap = JammerInfo.parse(swap_to, scenario.jammer.height_m)
-        if not scenario.area.contains(swap.x, swap.y):
-            raise UsageError(f"--swap-to {swap_to!r}: position outside the area")
-    if args.model is not None:
-        _check_value_network(args.model, scenario)
-    survey = _survey_map(args, scenario)
-    check_range("--retrain-samples", args.retrain_samples, 2)
-    check_range("--swap-every", args.swap_every, 1)
-    check_range("--cloud-latency", args.cloud_latency, 0, 3600)
-    if args.cloud_latency is not None and (args.realtime or args.map != "online"):
-        raise UsageError("--cloud-latency is the online map's on the lockstep clock; "
-                         + ("a --realtime cloud runs on the wall clock" if args.realtime else
-                            f"--map {args.map} follows the world's jammer at once"))
-    run_dir = output_path("--run-dir", args.run_dir or time.strftime("runs/up-%Y%m%d-%H%M%S"),
-                          directory=True)
-    if args.report:
-        output_path("--report", args.report)
-    if args.record:
-        _new_recording_of_up(args.record)
-    Topics(args.prefix)  # refuses a malformed prefix before anything starts
-    if args.credentials is not None:  # refuses a file without every role's login, too
-        access.load(args.credentials, access.roles(uavs, linked=args.routers > 1,
-                                                   recorder=args.record is not None))
-    endpoint = endpoint_from(args.endpoint)
-    agent_endpoint, link_endpoint = _second_router(args, endpoint)
-    web_listener, web = (None, None) if args.no_web else listen.open_listener(args.web)
-    config = UpConfig(
-        endpoint=endpoint, run_dir=run_dir, prefix=args.prefix,
-        scenario=args.scenario, uavs=uavs, episodes=args.episodes, duration=args.duration,
-        clock="realtime" if args.realtime else "lockstep", rate=args.rate or DEFAULT_RATE,
-        deadline=args.deadline, map=args.map, jammer=args.jammer, no_jammer=args.no_jammer,
-        seed=args.seed, report=Path(args.report) if args.report else None,
-        swap_at=args.swap_jammer_at, swap_to=swap_to, swap_every=args.swap_every,
-        cloud_latency=args.cloud_latency, retrain_samples=args.retrain_samples,
-        figures=not args.no_figures,
-        model=value_net_for(args.model, scenario.area.square_metres, uavs), sinr_map=survey,
-        secure=args.secure or args.credentials is not None,
-        credentials=Path(args.credentials) if args.credentials else None,
-        routers=args.routers, agent_endpoint=agent_endpoint, link_endpoint=link_endpoint,
-        web=web, web_listener=web_listener,
-        record=Path(args.record) if args.record else None,
-        command="jamnav " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["up"] else "jamnav up",
-    )
-    return up(config, scenario)
 
 
 # -- jammer -------------------------------------------------------------------------------------
@@ -309,31 +174,8 @@ def _describe_agents(agents: list[str], statuses: dict) -> str:
             f"{behind.episode} step {behind.step}")
 
 
-# -- record and replay ---------------------------------------------------------------------------
+# -- record and replay --------------------------------------------------------------------------
 SPEED_RANGE = (0.01, 1000)  # of a replay: beyond it, hours of silence or no pace at all
-
-
-def _new_recording(option: str, text: str) -> Path:
-    """``output_path`` for a recording, which is never written over: a file there (or a link
-    to one) is refused now."""
-    path = output_path(option, text)
-    if path.exists():
-        link = " (a link)" if path.is_symlink() else ""
-        raise UsageError(f"{option} {text}: exists{link}; choose another name or remove it")
-    return path
-
-
-def _new_recording_of_up(text: str) -> Path:
-    """``_new_recording`` for ``jamnav up --record``, whose restarted recorder writes beside
-    it (``supervisor.recording_path``): such a file left by an earlier run is refused now,
-    not by the recorder in the middle of the run."""
-    from jamnav.supervisor import restarted_recordings
-
-    path = _new_recording("--record", text)
-    if earlier := restarted_recordings(path):
-        raise UsageError(f"--record {text}: {earlier[0]} exists, where a restarted recorder "
-                         "would write; choose another name or remove it")
-    return path
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -341,7 +183,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     from shared import access, bus
 
     check_range("--duration", args.duration, 0, above=True)
-    out = _new_recording("--out", args.out)
+    out = new_recording("--out", args.out)
     topics = Topics(args.prefix)
     endpoint = endpoint_from(args.endpoint)
     login = access.login_for(args.credentials, access.RECORDER)
@@ -447,79 +289,8 @@ def cmd_router(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(commands) -> None:
-    """Add ``up``, ``jammer``, ``status``, ``record``, ``replay`` and ``router`` to
-    ``jamnav``'s sub-parsers."""
-    up = commands.add_parser("up", help="run the system: router, world, cloud, one agent per UAV")
-    add_bus_arguments(up)
-    up.add_argument("--scenario", default=None, metavar="NAME|PATH",
-                    help="scenario name under scenarios/ or a TOML file (default: icc2021)")
-    up.add_argument("--uavs", type=int, default=None,
-                    help="UAVs, one agent process each (default: the scenario's)")
-    length = up.add_mutually_exclusive_group()
-    length.add_argument("--episodes", type=int, default=None, help="stop after K episodes")
-    length.add_argument("--duration", type=float, default=None, metavar="SEC",
-                        help="stop after SEC seconds of flight (default: run until Ctrl-C)")
-    clock = up.add_mutually_exclusive_group()
-    clock.add_argument("--lockstep", action="store_true",
-                       help="each step waits for every agent (default; deterministic)")
-    clock.add_argument("--realtime", action="store_true", help="steps at a fixed rate")
-    up.add_argument("--rate", type=float, default=None,
-                    help=f"--realtime: steps per second (default {DEFAULT_RATE:g})")
-    up.add_argument("--deadline", type=float, default=2.0,
-                    help="lockstep: seconds a step waits for the actions")
-    up.add_argument("--map", choices=("online", "perfect", "outdated"), default="online",
-                    help="the agents' SINR map: learned online, true, or without the jammer")
-    jam = up.add_mutually_exclusive_group()
-    jam.add_argument("--jammer", metavar="X,Y,P[,H]",
-                     help="initial jammer (default: the scenario's)")
-    jam.add_argument("--no-jammer", action="store_true", help="start without a jammer")
-    up.add_argument("--swap-jammer-at", type=float, default=None, metavar="SEC",
-                    help="move the jammer over the control topic SEC seconds into the flight")
-    up.add_argument("--swap-to", default=None, metavar="X,Y,P|off",
-                    help=f"where --swap-jammer-at moves it (default {DEFAULT_SWAP_TO})")
-    up.add_argument("--swap-every", type=int, default=None, metavar="K",
-                    help="move the jammer to a fresh random setting every K episodes, the "
-                         "ones jamnav eval --swap-every K flies")
-    up.add_argument("--cloud-latency", type=float, default=None, metavar="S",
-                    help="lockstep, online map: flight seconds from a step's uploads to the "
-                         "maps they trigger in service (default: the scenario's "
-                         "online_map.cloud_latency_s; --realtime runs on the wall clock)")
-    up.add_argument("--seed", type=int, default=0, help="of the episodes (default 0)")
-    up.add_argument("--model", default=None, metavar="NAME|PATH",
-                    help=f"the {VALUE_NET_HELP} the cloud serves")
-    up.add_argument("--sinr-map", default=None, metavar="PATH",
-                    help="the survey's no-jammer SINR map the online map starts from "
-                         "(default: the shipped one of the scenario's radio world)")
-    up.add_argument("--run-dir", default=None, metavar="DIR",
-                    help="logs, report, figures, SINR maps (default runs/up-<time>)")
-    up.add_argument("--report", default=None, metavar="FILE",
-                    help="report JSON (default DIR/report.json)")
-    up.add_argument("--retrain-samples", type=int, default=None, metavar="N",
-                    help="post-change measurements the cloud retrains on (default: mapper's)")
-    up.add_argument("--no-figures", action="store_true", help="skip the trajectory figures")
-    up.add_argument("--secure", action="store_true",
-                    help="logins and access rules enforced by the router; fresh credentials "
-                         "in DIR/credentials.json unless --credentials names a file")
-    up.add_argument("--routers", type=int, choices=(1, 2), default=1,
-                    help="2: the world and the cloud on one router, the agents on another, "
-                         "the routers linked over TLS with certificates both ways (mTLS; "
-                         "fresh ones in DIR/tls)")
-    up.add_argument("--agent-endpoint", default=None, metavar="ENDPOINT",
-                    help="--routers 2: the agents' router (default: --endpoint's port + 1)")
-    up.add_argument("--link-endpoint", default=None, metavar="ENDPOINT",
-                    help="--routers 2: where the first router awaits the second, tls/HOST:PORT "
-                         "(default: --endpoint's port + 2)")
-    up.add_argument("--record", default=None, metavar="FILE.mcap",
-                    help="record every message of the run to an MCAP file (`jamnav replay`, "
-                         "Foxglove)")
-    web = up.add_mutually_exclusive_group()
-    web.add_argument("--web", default=None, metavar="HOST:PORT",
-                     help="where the console serves its page (default 127.0.0.1:8470, or a "
-                          "free port if another system holds it)")
-    web.add_argument("--no-web", action="store_true", help="no console")
-    up.set_defaults(handler=_guarded(cmd_up))
-
+# -- parsers ------------------------------------------------------------------------------------
+def add_console_command(commands) -> None:
     console = commands.add_parser("console", help="the operator's console in a browser, "
                                                   "against a running system")
     add_bus_arguments(console)
@@ -535,15 +306,19 @@ def register(commands) -> None:
                               "credentials file)")
     # `jamnav up` hands its console the socket it listens on (listen.inherited_listener).
     console.add_argument("--listen-fd", type=int, default=None, help=argparse.SUPPRESS)
-    console.set_defaults(handler=_guarded(cmd_console))
+    console.set_defaults(handler=guarded(cmd_console))
 
+
+def add_record_command(commands) -> None:
     record = commands.add_parser("record", help="record a running system's messages to MCAP")
     add_bus_arguments(record)
     record.add_argument("--out", required=True, metavar="FILE.mcap")
     record.add_argument("--duration", type=float, default=None, metavar="SEC",
                         help="stop after SEC seconds (default: on Ctrl-C)")
-    record.set_defaults(handler=_guarded(cmd_record))
+    record.set_defaults(handler=guarded(cmd_record))
 
+
+def add_replay_command(commands) -> None:
     replay = commands.add_parser("replay", help="publish a recording again on a router")
     replay.add_argument("file", metavar="FILE.mcap")
     replay.add_argument("--endpoint", default=None,
@@ -554,8 +329,10 @@ def register(commands) -> None:
     replay.add_argument("--speed", type=float, default=1.0,
                         help=f"times the recorded pace, {SPEED_RANGE[0]:g} to "
                              f"{SPEED_RANGE[1]:g} (default 1)")
-    replay.set_defaults(handler=_guarded(cmd_replay))
+    replay.set_defaults(handler=guarded(cmd_replay))
 
+
+def add_jammer_command(commands) -> None:
     jammer = commands.add_parser("jammer", help="move, switch off or show the running jammer")
     jammer_commands = jammer.add_subparsers(dest="jammer_command", required=True)
     jam_set = jammer_commands.add_parser("set", help="place the jammer (applied between steps)")
@@ -566,13 +343,17 @@ def register(commands) -> None:
     jammer_commands.add_parser("show", help="the jammer in force")
     for sub in jammer_commands.choices.values():
         add_bus_arguments(sub)
-        sub.set_defaults(handler=_guarded(cmd_jammer))
+        sub.set_defaults(handler=guarded(cmd_jammer))
 
+
+def add_status_command(commands) -> None:
     status = commands.add_parser("status", help="live processes, weight versions, step")
     add_bus_arguments(status)
     status.add_argument("--json", action="store_true", help="print JSON")
-    status.set_defaults(handler=_guarded(cmd_status))
+    status.set_defaults(handler=guarded(cmd_status))
 
+
+def add_router_command(commands) -> None:
     router = commands.add_parser("router", help="a zenoh router (what `jamnav up` starts)")
     add_bus_arguments(router)
     router.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
@@ -587,4 +368,4 @@ def register(commands) -> None:
     router.add_argument("--zenoh-config", default=None, metavar="FILE",
                         help="zenoh configuration to start from, e.g. TLS certificates for "
                              "links between hosts (docs/security.md)")
-    router.set_defaults(handler=_guarded(cmd_router))
+    router.set_defaults(handler=guarded(cmd_router))

@@ -17,10 +17,12 @@ from __future__ import annotations
 
 import base64
 import functools
+import glob
 import json
 import logging
 import os
 import queue
+import re
 import struct
 import threading
 import time
@@ -229,6 +231,20 @@ def _drain(inbox: queue.SimpleQueue, writer: RecordingWriter, topics: Topics,
             writer.write(key, kind, payload, log_time_ns)
         except MessageError as exc:
             refused.add(key, str(exc))
+
+
+# -- the files of a restarted recorder (`jamnav up --record`) -----------------------------------
+def recording_path(path: Path, restarts: int) -> Path:
+    """Where the recorder writes: ``path``, and after its n-th restart ``<stem>.<n><suffix>``
+    (the earlier file stays as it was closed)."""
+    return path if restarts == 0 else path.with_name(f"{path.stem}.{restarts}{path.suffix}")
+
+
+def restarted_recordings(path: Path) -> list[Path]:
+    """The files ``recording_path`` names after restarts that exist now (an earlier run's)."""
+    restarted = re.compile(rf"{re.escape(path.stem)}\.[1-9][0-9]*{re.escape(path.suffix)}")
+    return sorted(earlier for earlier in path.parent.glob(f"{glob.escape(path.stem)}.*")
+                  if restarted.fullmatch(earlier.name))
 
 
 # -- reading and replaying ----------------------------------------------------------------------

@@ -207,7 +207,7 @@ def test_transient_runs_from_each_change_to_the_first_newer_map():
 
 
 def test_the_report_shows_a_run_of_refinements_as_its_first_and_last_map():
-    from jamnav.supervisor import map_history
+    from jamnav.run_report import map_history
 
     def estimated(version: int, x: float) -> dict:
         return {"type": "jammer_estimated", "estimate": _estimate(map_version=version, x=x)

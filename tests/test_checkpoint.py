@@ -21,8 +21,8 @@ import pytest
 
 from cloud_service import value_training
 from cloud_service.value_training import Checkpoint, TrainConfig, train
-from jamnav.cli import _check_checkpoint as check_checkpoint
 from jamnav.cli import main
+from jamnav.cli_training import _check_checkpoint as check_checkpoint
 from planning.networks import WeightsError, from_bytes
 from shared.scenario import SCENARIO_DIR, load_scenario
 

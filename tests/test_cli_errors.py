@@ -168,7 +168,7 @@ CASES = [
     (["online-map", "--out", "{tmp}/o.png", "--model", VALUE], 2),
     (["online-map", "--out", "{file}/o.png"], 2),
     (["online-map", "--out", "{tmp}/dir.png"], 2),
-    # runtime commands (jamnav/cli_runtime.py)
+    # the system's commands (jamnav/cli_up.py, jamnav/cli_runtime.py)
     (["up", "--uavs", "0"], 2),
     (["up", "--episodes", "0"], 2),
     (["up", "--rate", "nan"], 2),

@@ -10,7 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jamnav.cli_runtime import _describe_agents
-from jamnav.supervisor import agents_line, fleet_line
+from jamnav.run_report import agents_line
+from jamnav.supervisor import fleet_line
 from planning.maps import MAP_SPACING_M, LevelRaster, RasterMap
 from planning.networks import load_network
 from planning.reference import LookaheadPolicy

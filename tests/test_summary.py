@@ -6,7 +6,7 @@ from __future__ import annotations
 import inspect
 
 from cloud_service.evaluation import evaluate, load_policy
-from jamnav.supervisor import map_delays, summary_table, swap_rates
+from jamnav.run_report import map_delays, summary_table, swap_rates
 from shared.shipped import (
     DEFAULT_VALUE_NET,
     EXTENDED_CROWD_VALUE_NET,

@@ -14,7 +14,7 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.x509.oid import NameOID
 
 from jamnav.cli import main as jamnav
-from jamnav.supervisor import LINK_DIR
+from jamnav.routers import LINK_DIR
 from shared import access, bus, tls
 from shared.topics import Topics
 from tests.support import free_endpoint, gone, wait_until
