@@ -52,6 +52,7 @@ from shared.messages import (
 from shared.outcomes import FINAL_OUTCOMES
 from shared.scenario import Scenario
 from shared.shipped import value_net_name
+from shared.threads import one_blas_thread
 from shared.topics import Topics
 from world_sim.process import initial_jammer
 
@@ -277,7 +278,8 @@ class Supervisor:
         return (listener.fileno(),) if child.role == "console" and listener is not None else ()
 
     def _launch(self, child: Child) -> None:
-        env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+        env = one_blas_thread(dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1",
+                                   PYTHONUNBUFFERED="1"))
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
         with child.log_path.open("ab") as log:
             child.process = subprocess.Popen(

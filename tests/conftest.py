@@ -8,7 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from shared.scenario import SCENARIO_DIR, Scenario, load_scenario
+from shared.threads import one_blas_thread
+
+# The test run is a program of its own: its in-process flights and the processes it starts run
+# BLAS on one thread, as the system's do. Set before numpy loads (shared.scenario loads it).
+one_blas_thread(os.environ)
+
+from shared.scenario import SCENARIO_DIR, Scenario, load_scenario  # noqa: E402
 
 
 def pytest_sessionstart(session) -> None:
