@@ -39,33 +39,31 @@ from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights, Retra
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
 from planning.networks import SinrMapNetwork, WeightsError, load_network, sha256
 from shared import access, bus
-from shared.measurements import MeasurementBatch, MeasurementSpec
-from shared.messages import (
-    ChangeDetected,
-    JammerChanged,
-    JammerEstimate,
-    JammerEstimated,
-    JammerInfo,
+from shared.cloud_messages import (
     MapMode,
     MeasurementUpload,
-    MessageError,
-    ProcessStatus,
     RasterGrid,
-    RetrainFailed,
-    RoundClosed,
-    RoundOpened,
     SinrMap,
-    SinrWeightsPublished,
     UploadReceipt,
     ValueWeights,
-    describe_estimate,
-    encode,
 )
+from shared.events import (
+    ChangeDetected,
+    JammerChanged,
+    JammerEstimated,
+    RetrainFailed,
+    SinrWeightsPublished,
+)
+from shared.jammer_messages import JammerEstimate, JammerInfo, describe_estimate
+from shared.measurements import MeasurementBatch, MeasurementSpec
+from shared.process_status import ProcessStatus
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
 from shared.shipped import DEFAULT_VALUE_NET, EXTENDED_VALUE_NET, VALUE_NET_HELP, value_net_path
 from shared.survey_maps import foreign_survey_map, sinr_map_for
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
+from shared.wire import MessageError, encode
+from shared.world_messages import RoundClosed, RoundOpened
 
 ROLE = "cloud"
 # Measurements are stamped with the agent's clock: a stamp further ahead than this is a bad

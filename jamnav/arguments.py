@@ -9,7 +9,7 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-from shared.messages import JAMMER_LIMITS, JammerCommand
+from shared.jammer_messages import JAMMER_LIMITS, JammerCommand
 
 
 class UsageError(Exception):

@@ -57,7 +57,7 @@ from jamnav.supervisor import (
     summary_table,
 )
 from shared.measurements import MeasurementSpec
-from shared.messages import ProcessStatus
+from shared.process_status import ProcessStatus
 from shared.resources import resident_mib
 from shared.scenario import Scenario
 from uav_agent.uploads import OutboxFile, outbox_path

@@ -134,7 +134,7 @@ def with_online_map_options(args: argparse.Namespace, scenario: Scenario) -> Sce
 
 def scenario_with_jammer(args: argparse.Namespace) -> Scenario:
     """The scenario named by --scenario with --jammer/--no-jammer applied and validated."""
-    from shared.messages import JammerInfo
+    from shared.jammer_messages import JammerInfo
 
     scenario = _load_scenario(args)
     if getattr(args, "no_jammer", False):

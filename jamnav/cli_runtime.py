@@ -27,7 +27,7 @@ from jamnav.arguments import (
     output_path,
     survey_map_argument,
 )
-from shared.messages import mapper_summary
+from shared.process_status import mapper_summary
 from shared.scenario import (
     MAX_UAVS,
     SEED_MAX,
@@ -124,7 +124,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     from jamnav.console import listen
     from jamnav.supervisor import UpConfig, up
     from shared import access
-    from shared.messages import JammerInfo
+    from shared.jammer_messages import JammerInfo
     from world_sim.process import initial_jammer
 
     scenario = load_scenario(args.scenario)
@@ -192,7 +192,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 # -- jammer -------------------------------------------------------------------------------------
 def cmd_jammer(args: argparse.Namespace) -> int:
     from shared import access, bus
-    from shared.messages import JammerReply, jammer_numbers
+    from shared.jammer_messages import JammerReply, jammer_numbers
 
     numbers = jammer_numbers(args.jammer) if args.jammer_command == "set" else None
     command = jammer_command(args.jammer_command, numbers, args.jammer if numbers else "")
@@ -236,7 +236,8 @@ STATUS_ROLES = ("world", "cloud", "agent")  # the processes that answer a status
 
 def cmd_status(args: argparse.Namespace) -> int:
     from shared import access, bus
-    from shared.messages import MessageError, ProcessStatus, decode
+    from shared.process_status import ProcessStatus
+    from shared.wire import MessageError, decode
 
     topics = Topics(args.prefix)
     endpoint = endpoint_from(args.endpoint)

@@ -38,22 +38,16 @@ from cloud_service.sinr_memory import RUN_DIR_FILE
 from jamnav.console.listen import TOKEN_FILE, WebAddress, new_token
 from jamnav.event_lines import describe_event
 from shared import access, bus, tls
-from shared.messages import (
-    JammerCommand,
-    JammerInfo,
-    JammerReply,
-    MessageError,
-    ProcessStatus,
-    WorldState,
-    decode,
-    decode_event,
-    mapper_summary,
-)
+from shared.events import decode_event
+from shared.jammer_messages import JammerCommand, JammerInfo, JammerReply
 from shared.outcomes import FINAL_OUTCOMES
+from shared.process_status import ProcessStatus, mapper_summary
 from shared.scenario import Scenario
 from shared.shipped import value_net_name
 from shared.threads import one_blas_thread
 from shared.topics import Topics
+from shared.wire import MessageError, decode
+from shared.world_messages import WorldState
 from world_sim.process import initial_jammer
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -31,7 +31,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, RootModel, ValidationError, model_validator
 
-from shared.messages import (
+from shared.events import (
     ChangeDetected,
     JammerChanged,
     JammerEstimated,

@@ -176,7 +176,7 @@ class Measurement(BaseModel):
 
 # Measurement's fields in order. An agent holds the measurements it takes as plain tuples in
 # this order (a model per record cost its flight loop more than everything else it does with
-# one) and uploads them as maps with these keys: ``shared.messages.encode_upload``.
+# one) and uploads them as maps with these keys: ``shared.cloud_messages.encode_upload``.
 MEASUREMENT_FIELDS = tuple(Measurement.model_fields)
 
 

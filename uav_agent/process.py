@@ -5,8 +5,8 @@ follows new versions (subscriptions), checking each one's digest and shape and k
 last good one otherwise. For every observation the world sends it, it publishes an action and
 records its SINR measurement; measurements go to the cloud in small batches.
 
-On the lockstep clock with the online map (``shared.messages``, MeasurementRound) it uploads
-each round's reports at once and decides on the map version the world names.
+On the lockstep clock with the online map (``shared.world_messages``, MeasurementRound) it
+uploads each round's reports at once and decides on the map version the world names.
 
 It knows what the paper's UAV knows: its own state and missions, its own SINR measurements, the
 other UAVs' positions and velocities, and the maps the cloud sends. Nothing else reaches it
@@ -37,21 +37,14 @@ from planning.maps import LevelRaster, RasterMap, sinr_network_raster
 from planning.networks import WeightsError, from_bytes
 from planning.reference import LookaheadPolicy
 from shared import access, bus
+from shared.cloud_messages import MAX_UPLOAD, SinrMap, ValueWeights
+from shared.events import WeightsRefused
 from shared.measurements import MeasurementSpec, SpotFilter, scenario_features
-from shared.messages import (
-    MAX_UPLOAD,
-    Action,
-    AgentObservation,
-    JoinReply,
-    MeasurementRound,
-    ProcessStatus,
-    SinrMap,
-    ValueWeights,
-    WeightsRefused,
-    encode,
-)
+from shared.process_status import ProcessStatus
 from shared.scenario import MAX_UAVS, Scenario, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
+from shared.wire import encode
+from shared.world_messages import Action, AgentObservation, JoinReply, MeasurementRound
 from uav_agent.uploads import (
     DEFAULT_BATCH,
     DEFAULT_CAPACITY,

@@ -35,8 +35,8 @@ from pathlib import Path
 import msgpack
 
 from shared import bus
+from shared.cloud_messages import MAX_UPLOAD, UploadReceipt, encode_upload
 from shared.measurements import MEASUREMENT_FIELDS, Measurement
-from shared.messages import MAX_UPLOAD, UploadReceipt, encode_upload
 
 DEFAULT_CAPACITY = 20_000  # measurements: over 3 minutes of a UAV at 100 steps/s
 # Measurements per upload: each upload costs the cloud a transaction and the agent a round trip

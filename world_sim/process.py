@@ -32,32 +32,25 @@ import numpy as np
 import zenoh
 
 from shared import access, bus
-from shared.messages import (
-    Action,
-    AgentObservation,
-    Clock,
-    JammerChanged,
-    JammerCommand,
-    JammerInfo,
-    JammerReply,
-    JoinReply,
-    MeasurementRound,
-    MessageError,
-    ProcessStatus,
-    RoundClosed,
-    RoundOpened,
-    RunFinished,
-    UavOutcomes,
-    WorldState,
-    decode,
-    encode,
-    outcome_labels,
-)
+from shared.events import JammerChanged, RunFinished, UavOutcomes, outcome_labels
+from shared.jammer_messages import JammerCommand, JammerInfo, JammerReply
 from shared.observation import Observation, decision_reach, decision_relevant
 from shared.paper import JammerSetting
+from shared.process_status import ProcessStatus
 from shared.radio import RadioModel
 from shared.scenario import MAX_UAVS, Scenario, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
+from shared.wire import MessageError, decode, encode
+from shared.world_messages import (
+    Action,
+    AgentObservation,
+    Clock,
+    JoinReply,
+    MeasurementRound,
+    RoundClosed,
+    RoundOpened,
+    WorldState,
+)
 from world_sim.cloud_rounds import CloudRounds
 from world_sim.core import VectorWorld, episode_seed, fleet_observation
 from world_sim.jammers import swapping_jammers
