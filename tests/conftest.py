@@ -87,8 +87,8 @@ def supervisor():
 # fixtures are built once).
 SYSTEM_MODULES = frozenset({
     "test_bus_inprocess", "test_bus_supervisor", "test_chaos", "test_checkpoint",
-    "test_console_browser", "test_faults", "test_fuzz", "test_packaging", "test_recording",
-    "test_security", "test_two_routers",
+    "test_console_browser", "test_examples", "test_faults", "test_fuzz", "test_packaging",
+    "test_recording", "test_security", "test_two_routers",
 })
 
 
