@@ -152,6 +152,9 @@ class Network:
 
 
 class ValueNetwork(Network):
+    """The value network V(s^jn): a joint state to the value of its UAV's mission, scaled
+    from a tanh output; ``method`` says which method's features it reads."""
+
     kind = "value"
 
     def __init__(self, architecture: dict[str, Any], tensors: Mapping[str, np.ndarray]):
@@ -167,6 +170,9 @@ class ValueNetwork(Network):
 
 
 class SinrMapNetwork(Network):
+    """The SINR-mapping network: a place's features to the logits of its quantized SINR
+    level, from which the online map's rasters are sampled."""
+
     kind = "sinr_map"
 
     def __init__(self, architecture: dict[str, Any], tensors: Mapping[str, np.ndarray]):

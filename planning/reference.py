@@ -126,6 +126,9 @@ def smallest_gaps(
 
 
 class Decision(NamedTuple):
+    """What the lookahead chose for each of N UAVs: the commanded speed and heading, the
+    action's index in the action set, and its score."""
+
     speed: np.ndarray  # (N,)
     heading: np.ndarray  # (N,)
     action: np.ndarray  # (N,) index into the action set
@@ -166,6 +169,10 @@ DEEP_SEARCH_BEAM = 4
 
 
 class LookaheadPolicy:
+    """The one-step lookahead every UAV flies (Algorithm 1): scores each permissible action by
+    its reward plus the discounted value of the joint state it leads to, searching deeper for
+    a UAV at risk of disconnection. The numpy reference of the compiled core."""
+
     def __init__(self, scenario: Scenario, value_net: ValueNetwork, shield: bool = True,
                  lookahead_depth: int | None = None, others_model: str | None = None):
         """``shield=False`` flies without the method's safe cells even if it has them: how

@@ -68,6 +68,8 @@ def roles(uavs: int, linked: bool = False, recorder: bool = False) -> list[str]:
 
 
 class Login(BaseModel):
+    """A user and password that a client session presents to a secure system's router."""
+
     # The router reads logins as ``user:password`` lines: neither may hold a line break, and
     # the user no colon.
     model_config = ConfigDict(extra="forbid", frozen=True)

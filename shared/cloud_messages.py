@@ -57,6 +57,9 @@ class RasterGrid(Message):
 
 
 class _Weights(Message):
+    """Network weights as a message: a version and safetensors (or raster) bytes, refused
+    unless their sha256 matches."""
+
     max_bytes: ClassVar[int] = MAX_WEIGHTS_BYTES + 4096
     version: Count
     sha256: Digest

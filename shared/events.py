@@ -27,6 +27,8 @@ OutcomeLabel = Literal["success", "disconnection", "collision", "timeout"]
 
 
 class _Event(Message):
+    """What every event carries: when (unix seconds) and which process put it."""
+
     t: Finite  # unix seconds
     source: Text
 

@@ -83,6 +83,9 @@ class JammerCommand(Message):
 
 
 class JammerReply(Message):
+    """The world's answer to a jammer command: accepted or why not, and the jammer in force
+    with the step it applies from."""
+
     accepted: bool
     reason: str | None = Field(default=None, max_length=500)
     jammer: JammerInfo | None  # in force from the next step (None: no jammer)

@@ -180,6 +180,10 @@ class Models:
 
 
 class AgentService:
+    """One UAV's agent process: decide an action for each observation the world sends, with
+    the networks the cloud serves, and upload its measurements to the cloud (kept in an
+    outbox until stored)."""
+
     def __init__(self, session, topics: Topics, scenario: Scenario, uav: int,
                  log: logging.Logger, upload_every: int = DEFAULT_BATCH,
                  upload_after: float = DEFAULT_MAX_AGE_S,

@@ -62,6 +62,9 @@ OUTCOMES_KEPT = 1000  # episodes whose outcomes a late or reconnected subscriber
 
 @dataclass(frozen=True)
 class WorldConfig:
+    """How a world process runs: its fleet and seed, how long, on which clock, and how
+    long it waits for agents and the cloud."""
+
     uavs: int
     seed: int = 0
     episodes: int | None = None  # None: until stopped (or ``duration``)
@@ -236,6 +239,10 @@ def observation_sent(world: VectorWorld) -> tuple[Observation, np.ndarray]:
 
 
 class WorldService:
+    """The world process's work: step the fleet on its clock, hand each agent its
+    observation and reports, take their actions, apply jammer commands between steps, and
+    publish the fleet state, events and outcomes."""
+
     def __init__(self, session: zenoh.Session, topics: Topics, scenario: Scenario,
                  config: WorldConfig, jammer: JammerInfo | None, log: logging.Logger):
         self.session, self.topics, self.config, self.log = session, topics, config, log
