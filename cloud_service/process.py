@@ -445,12 +445,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def load_training(network: SinrMapNetwork, background: bool) -> None:
-    """Torch takes 1.5-3 s to import, and its first fit 1.2-1.9 s more than the next. The cloud
-    serves its weights at once (the agents, and so the first step, wait for them) and loads
-    torch meanwhile, and fits ``network`` (the survey map) for two throwaway steps, for its
-    first retraining: over the bus the first provisional map after `jamnav jammer set` came
-    2.2 s after the first estimate attempt without it. On the lockstep clock it does so before
-    the first round instead: a fit of a round must not draw on torch beside it."""
+    """Torch takes seconds to import, and its first fit longer than the next (BENCHMARKS.md,
+    "Distributed runtime"). The cloud serves its weights at once (the agents, and so the first
+    step, wait for them) and loads torch meanwhile, and fits ``network`` (the survey map) for
+    two throwaway steps, so that its first retraining after a change does not pay the first
+    fit's set-up. On the lockstep clock it does so before the first round instead: a fit of a
+    round must not draw on torch beside it."""
 
     def load() -> None:
         import torch

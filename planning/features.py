@@ -40,8 +40,8 @@ class MethodOptions(NamedTuple):
     # so cannot touch, whatever they choose at the same instant: the guarantee that a
     # constant-velocity prediction lacks when a hovering UAV starts or another turns.
     # Training flies without it (see LookaheadPolicy): trained inside the cells, the network
-    # never met a collision and leaned on the cells, with more timeouts (97.2 % success
-    # against 97.9 % over the seven validation settings).
+    # never met a collision and leaned on the cells, with more timeouts (README, "The
+    # extended method").
     safe_cells: bool = False
 
     @classmethod

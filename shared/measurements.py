@@ -354,7 +354,7 @@ class SpotFilter:
     """
 
     def __init__(self, scenario: Scenario, uavs: int):
-        # A 0-d array: numpy compares an array with it three times faster than with a float.
+        # A 0-d array: numpy compares an array with it faster than with a float.
         self.spacing = np.array(scenario.uav.measurement_spacing_m)
         self.last_xy = np.full((uavs, 2), np.inf)
         self.last_level = np.full(uavs, -1, dtype=np.int64)

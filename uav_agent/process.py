@@ -58,8 +58,8 @@ ROLE = "agent"
 TIMINGS_KEPT = 4096
 # Route fields an agent keeps per map: its current destination's and its next one's, and room
 # for the destinations of an episode the world flies again after a restart. Kept for every
-# destination, they would pile up for as long as one map is flown (12 KiB each on icc2021,
-# 41 KiB in the city: 49 and 166 MiB at the in-process default of 4,096).
+# destination, they would pile up for as long as one map is flown (BENCHMARKS.md, "Fleets of
+# agent processes").
 ROUTE_FIELDS_KEPT = 4
 MAP_WAIT_S = 30.0  # how long a decision waits for the map version the world names
 MAP_QUERY_S = 2.0  # how long it waits for the cloud's answer about a version not heard of
@@ -320,7 +320,7 @@ class AgentService:
     def _sweep_ahead(self, observation: AgentObservation) -> None:
         """Sweep the route field to the UAV's next destination on the map in use, a line at a
         time while no observation waits: the next mission's first decision then finds it ready
-        instead of sweeping it (2-5 ms, which made those decisions an agent's slowest). Only
+        instead of sweeping it (which made those decisions an agent's slowest). Only
         the extended method reads route fields."""
         radio_map, destination = self.models.radio_map, observation.next_destination
         if destination is None or not self.models.policy.options.route_distance:
