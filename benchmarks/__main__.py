@@ -10,6 +10,8 @@ import platform
 import sys
 import time
 
+from shared.threads import one_blas_thread
+
 BENCHMARKS = ["bench_radio", "bench_world", "bench_policy", "bench_sinr", "bench_adaptation",
               "bench_blip", "bench_correction", "bench_map_ceiling",
               "bench_bus", "bench_agreement", "bench_fleet", "bench_outbox", "bench_recording",
@@ -25,6 +27,7 @@ def main() -> int:
     if unknown:
         parser.error(f"unknown benchmark(s): {', '.join(sorted(unknown))}")
 
+    one_blas_thread(os.environ)
     import torch
 
     from benchmarks.common import cpu_name

@@ -25,16 +25,13 @@ from pathlib import Path
 from benchmarks.common import Figure
 from planning.networks import sha256
 from shared import bus
-from shared.messages import (
-    JammerInfo,
-    JammerReply,
-    SinrMap,
-    UavOutcomes,
-    WorldState,
-    encode,
-)
+from shared.cloud_messages import SinrMap
+from shared.events import UavOutcomes
+from shared.jammer_messages import JammerInfo, JammerReply
 from shared.shipped import SINR_MAP_NO_JAMMER
 from shared.topics import Topics
+from shared.wire import encode
+from shared.world_messages import WorldState
 from tests import browser as chromium
 
 ROOT = Path(__file__).resolve().parent.parent

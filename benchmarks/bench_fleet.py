@@ -17,9 +17,10 @@ from pathlib import Path
 from benchmarks.bench_bus import ROOT, free_endpoint, up_report
 from benchmarks.common import Figure
 from shared import bus
-from shared.messages import Action, WorldState, decode
 from shared.resources import resident_mib
 from shared.topics import Topics
+from shared.wire import decode
+from shared.world_messages import Action, WorldState
 
 COLD_START_RUN_S = 60  # wall seconds the live system may run for the cold-start measurement
 

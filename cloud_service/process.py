@@ -39,33 +39,31 @@ from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights, Retra
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
 from planning.networks import SinrMapNetwork, WeightsError, load_network, sha256
 from shared import access, bus
-from shared.measurements import MeasurementBatch, MeasurementSpec
-from shared.messages import (
-    ChangeDetected,
-    JammerChanged,
-    JammerEstimate,
-    JammerEstimated,
-    JammerInfo,
+from shared.cloud_messages import (
     MapMode,
     MeasurementUpload,
-    MessageError,
-    ProcessStatus,
     RasterGrid,
-    RetrainFailed,
-    RoundClosed,
-    RoundOpened,
     SinrMap,
-    SinrWeightsPublished,
     UploadReceipt,
     ValueWeights,
-    describe_estimate,
-    encode,
 )
+from shared.events import (
+    ChangeDetected,
+    JammerChanged,
+    JammerEstimated,
+    RetrainFailed,
+    SinrWeightsPublished,
+)
+from shared.jammer_messages import JammerEstimate, JammerInfo, describe_estimate
+from shared.measurements import MeasurementBatch, MeasurementSpec
+from shared.process_status import ProcessStatus
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
 from shared.shipped import DEFAULT_VALUE_NET, EXTENDED_VALUE_NET, VALUE_NET_HELP, value_net_path
 from shared.survey_maps import foreign_survey_map, sinr_map_for
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
+from shared.wire import MessageError, encode
+from shared.world_messages import RoundClosed, RoundOpened
 
 ROLE = "cloud"
 # Measurements are stamped with the agent's clock: a stamp further ahead than this is a bad
@@ -447,12 +445,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def load_training(network: SinrMapNetwork, background: bool) -> None:
-    """Torch takes 1.5-3 s to import, and its first fit 1.2-1.9 s more than the next. The cloud
-    serves its weights at once (the agents, and so the first step, wait for them) and loads
-    torch meanwhile, and fits ``network`` (the survey map) for two throwaway steps, for its
-    first retraining: over the bus the first provisional map after `jamnav jammer set` came
-    2.2 s after the first estimate attempt without it. On the lockstep clock it does so before
-    the first round instead: a fit of a round must not draw on torch beside it."""
+    """Torch takes seconds to import, and its first fit longer than the next (BENCHMARKS.md,
+    "Distributed runtime"). The cloud serves its weights at once (the agents, and so the first
+    step, wait for them) and loads torch meanwhile, and fits ``network`` (the survey map) for
+    two throwaway steps, so that its first retraining after a change does not pay the first
+    fit's set-up. On the lockstep clock it does so before the first round instead: a fit of a
+    round must not draw on torch beside it."""
 
     def load() -> None:
         import torch

@@ -14,7 +14,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from shared.messages import MeasurementUpload, RoundOpened
+from shared.cloud_messages import MeasurementUpload
+from shared.world_messages import RoundOpened
 
 # How long a round waits for the uploads it names: an agent that died after the world named it
 # must not stop the clock (the world itself waits for the round's close longer).

@@ -10,7 +10,7 @@
   the run; ``chaos``: the same system under faults, and the ledger of what came through.
 - ``recording``: runs kept as MCAP files (record, replay); ``event_lines``: a run's events as
   lines for people; ``progress``: the progress bar of long commands; ``console``: the
-  operator's console in a browser.
+  operator's console in a browser; ``__main__``: the ``jamnav`` entry point, which sizes
+  BLAS to one thread before numpy loads.
 """
 
-import shared  # noqa: F401  (pins the BLAS threads before numpy loads)

@@ -12,7 +12,7 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-from shared.messages import JAMMER_LIMITS, JammerCommand, JammerInfo
+from shared.jammer_messages import JAMMER_LIMITS, JammerCommand, JammerInfo
 from shared.scenario import Scenario, load_scenario, resolve_scenario_path
 
 

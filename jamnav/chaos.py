@@ -52,7 +52,7 @@ from jamnav.routers import check_endpoint_free
 from jamnav.run_report import summary_table
 from jamnav.supervisor import OUTBOX_DIR, Child, Supervisor, UpConfig
 from shared.measurements import MeasurementSpec
-from shared.messages import ProcessStatus
+from shared.process_status import ProcessStatus
 from shared.resources import resident_mib
 from shared.scenario import Scenario
 from uav_agent.uploads import OutboxFile, outbox_path

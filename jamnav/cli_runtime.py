@@ -19,7 +19,7 @@ import threading
 from pathlib import Path
 
 from jamnav.arguments import UsageError, check_range, jammer_command, new_recording
-from shared.messages import mapper_summary
+from shared.process_status import mapper_summary
 from shared.scenario import ScenarioError, load_scenario
 from shared.topics import (
     DEFAULT_ENDPOINT,
@@ -57,7 +57,7 @@ def guarded(handler):
 # -- jammer -------------------------------------------------------------------------------------
 def cmd_jammer(args: argparse.Namespace) -> int:
     from shared import access, bus
-    from shared.messages import JammerReply, jammer_numbers
+    from shared.jammer_messages import JammerReply, jammer_numbers
 
     numbers = jammer_numbers(args.jammer) if args.jammer_command == "set" else None
     command = jammer_command(args.jammer_command, numbers, args.jammer if numbers else "")
@@ -101,7 +101,8 @@ STATUS_ROLES = ("world", "cloud", "agent")  # the processes that answer a status
 
 def cmd_status(args: argparse.Namespace) -> int:
     from shared import access, bus
-    from shared.messages import MessageError, ProcessStatus, decode
+    from shared.process_status import ProcessStatus
+    from shared.wire import MessageError, decode
 
     topics = Topics(args.prefix)
     endpoint = endpoint_from(args.endpoint)

@@ -103,7 +103,7 @@ def _check_run_options(args: argparse.Namespace, scenario: Scenario, uavs: int
     """The fleet, the run's length and clock, the jammer and its swap, the networks and the
     online map's options, each checked before anything starts; the swap's target and the
     survey map the online map starts from."""
-    from shared.messages import JammerInfo
+    from shared.jammer_messages import JammerInfo
     from world_sim.process import initial_jammer
 
     check_range("--uavs", uavs, 1, MAX_UAVS)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from shared.messages import JammerEstimate, describe_estimate
+from shared.jammer_messages import JammerEstimate, describe_estimate
 
 
 def describe_event(event: dict[str, Any]) -> str | None:

@@ -7,7 +7,7 @@ schema per message type), each message the model's JSON form (message encoding `
 binary fields (the weights' safetensors) as base64 strings marked ``contentEncoding: base64``.
 
 A replay puts the very payloads that were recorded. Every process encodes with
-``shared.messages.encode``; the JSON keeps what that encoding needs (ints stay ints, floats are
+``shared.wire.encode``; the JSON keeps what that encoding needs (ints stay ints, floats are
 written as round-trip decimals), so the recorded payload is the model's encoding again. A
 payload that is not (a sender with another msgpack encoder) is kept as it was, in an
 attachment named ``<key>#<sequence>``, and replayed from there.
@@ -39,20 +39,12 @@ from mcap.reader import make_reader
 from mcap.writer import MCAP0_MAGIC, Writer
 
 from shared import access, bus
-from shared.messages import (
-    Action,
-    AgentObservation,
-    Event,
-    JammerEstimate,
-    Message,
-    MessageError,
-    SinrMap,
-    ValueWeights,
-    WorldState,
-    decode,
-    encode,
-)
+from shared.cloud_messages import SinrMap, ValueWeights
+from shared.events import Event
+from shared.jammer_messages import JammerEstimate
 from shared.topics import Topics, uav_in_key
+from shared.wire import Message, MessageError, decode, encode
+from shared.world_messages import Action, AgentObservation, WorldState
 
 METADATA = "jamnav"  # the metadata record that names the recorded prefix
 VERBATIM_MEDIA_TYPE = "application/msgpack"

@@ -12,7 +12,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from jamnav.event_lines import describe_event
-from shared.messages import JammerInfo, ProcessStatus
+from shared.jammer_messages import JammerInfo
+from shared.process_status import ProcessStatus
 from shared.outcomes import FINAL_OUTCOMES
 from shared.shipped import value_net_name
 

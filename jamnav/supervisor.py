@@ -44,17 +44,12 @@ from jamnav.routers import (
 )
 from jamnav.run_report import build_report, publish_report
 from shared import access, bus, tls
-from shared.messages import (
-    JammerCommand,
-    JammerInfo,
-    JammerReply,
-    MessageError,
-    ProcessStatus,
-    WorldState,
-    decode,
-    decode_event,
-    mapper_summary,
-)
+from shared.events import decode_event
+from shared.jammer_messages import JammerCommand, JammerInfo, JammerReply
+from shared.process_status import ProcessStatus, mapper_summary
+from shared.threads import one_blas_thread
+from shared.wire import MessageError, decode
+from shared.world_messages import WorldState
 from shared.scenario import Scenario
 from shared.topics import Topics
 from world_sim.process import initial_jammer
@@ -236,7 +231,8 @@ class Supervisor:
         return (listener.fileno(),) if child.role == "console" and listener is not None else ()
 
     def _launch(self, child: Child) -> None:
-        env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+        env = one_blas_thread(dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1",
+                                   PYTHONUNBUFFERED="1"))
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
         with child.log_path.open("ab") as log:
             child.process = subprocess.Popen(

@@ -12,8 +12,6 @@ This package imports ``shared``; ``shared`` and the world (``world_sim``) never 
 
 from __future__ import annotations
 
-import shared  # noqa: F401  (pins the BLAS threads before numpy loads)
-
 PLANNER_VARIABLE = "JAMNAV_PLANNER"
 PLANNERS = ("compiled", "reference")
 

@@ -40,8 +40,8 @@ class MethodOptions(NamedTuple):
     # so cannot touch, whatever they choose at the same instant: the guarantee that a
     # constant-velocity prediction lacks when a hovering UAV starts or another turns.
     # Training flies without it (see LookaheadPolicy): trained inside the cells, the network
-    # never met a collision and leaned on the cells, with more timeouts (97.2 % success
-    # against 97.9 % over the seven validation settings).
+    # never met a collision and leaned on the cells, with more timeouts (README, "The
+    # extended method").
     safe_cells: bool = False
 
     @classmethod
@@ -82,22 +82,53 @@ def joint_state(
     already chosen and ordered (``Observation.nearest_neighbours``), broadcastable against
     the own batch (the lookahead passes own (N, A) against others (N, 1, K)).
     """
+    if others_present.shape[-1] > observed_uavs:
+        raise ValueError("pass at most J_n others: see Observation.nearest_neighbours")
+    goal_distance, cos, sin = _goal_frame(position, destination)
+    extras = [column for column in (below_steps, route_distance) if column is not None]
+    level_column = len(OWN_FEATURES) + len(OTHER_FEATURES) * observed_uavs
+    # One contiguous plane per feature, turned into rows of features once at the end: faster
+    # on the lookahead's batch than writing each feature down a column of the rows.
+    planes = np.empty((level_column + 1 + len(extras),) + goal_distance.shape)
+    _write_own(planes[: len(OWN_FEATURES)], velocity, heading, radius, max_speed,
+               goal_distance, cos, sin)
+    width = len(OTHER_FEATURES)
+    for k in range(observed_uavs):
+        column = len(OWN_FEATURES) + k * width
+        block = planes[column : column + width]
+        if k < others_present.shape[-1]:
+            _write_other(block, others_position[..., k, :] - position,
+                         others_velocity[..., k, :], others_present[..., k], cos, sin)
+        else:
+            _write_absent(block)
+    planes[level_column] = level
+    # Extended method: how long the UAV has been disconnected (tells a harmless gap from a
+    # fatal one) and how far the destination is along the map's connected route.
+    for offset, column in enumerate(extras, start=1):
+        planes[level_column + offset] = column
+    return np.ascontiguousarray(np.moveaxis(planes, 0, -1), dtype=np.float32)
+
+
+def _goal_frame(position: np.ndarray,
+                destination: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The distance to the goal, and the cosine and sine of the frame's turn: its +x axis is
+    the unit vector to the goal (any axis at the goal itself)."""
     gx = destination[..., 0] - position[..., 0]
     gy = destination[..., 1] - position[..., 1]
     goal_distance = np.hypot(gx, gy)
-    batch = goal_distance.shape
-    # The frame's +x axis is the unit vector to the goal (any axis at the goal itself).
     at_goal = goal_distance == 0
     safe = goal_distance.copy()
     np.copyto(safe, 1.0, where=at_goal)
     cos, sin = gx / safe, gy / safe
     np.copyto(cos, 1.0, where=at_goal)
     np.copyto(sin, 0.0, where=at_goal)
-    extras = [column for column in (below_steps, route_distance) if column is not None]
-    level_column = len(OWN_FEATURES) + len(OTHER_FEATURES) * observed_uavs
-    # One contiguous plane per feature, turned into rows of features once at the end: on the
-    # lookahead's batch a fifth faster than writing each feature down a column of the rows.
-    planes = np.empty((level_column + 1 + len(extras),) + batch)
+    return goal_distance, cos, sin
+
+
+def _write_own(planes: np.ndarray, velocity: np.ndarray, heading: np.ndarray,
+               radius: np.ndarray, max_speed: np.ndarray, goal_distance: np.ndarray,
+               cos: np.ndarray, sin: np.ndarray) -> None:
+    """The UAV's own features (``OWN_FEATURES``) into their planes."""
     vx, vy = velocity[..., 0], velocity[..., 1]
     planes[0] = vx * cos + vy * sin
     planes[1] = vy * cos - vx * sin
@@ -109,39 +140,33 @@ def joint_state(
     planes[7] = max_speed
     planes[8] = wrap_angle(heading - np.arctan2(sin, cos))
 
-    count = others_present.shape[-1]
-    if count > observed_uavs:
-        raise ValueError("pass at most J_n others: see Observation.nearest_neighbours")
-    width = len(OTHER_FEATURES)
-    for k in range(observed_uavs):
-        column = len(OWN_FEATURES) + k * width
-        block = planes[column : column + width]
-        if k >= count:
-            block[0] = -ABSENT_DISTANCE
-            block[1:4] = 0.0
-            block[4] = ABSENT_DISTANCE
-            block[5] = np.pi
-            continue
-        rx = others_position[..., k, 0] - position[..., 0]
-        ry = others_position[..., k, 1] - position[..., 1]
-        ovx, ovy = others_velocity[..., k, 0], others_velocity[..., k, 1]
-        px, py = block[0], block[1]
-        px[...] = rx * cos + ry * sin
-        py[...] = ry * cos - rx * sin
-        block[2] = ovx * cos + ovy * sin
-        block[3] = ovy * cos - ovx * sin
-        absent = ~others_present[..., k]
-        if absent.any():
-            np.copyto(px, -ABSENT_DISTANCE, where=absent)
-            np.copyto(block[1:4], 0.0, where=absent)
-        np.hypot(px, py, out=block[4])
-        np.arctan2(py, px, out=block[5])
-    planes[level_column] = level
-    # Extended method: how long the UAV has been disconnected (tells a harmless gap from a
-    # fatal one) and how far the destination is along the map's connected route.
-    for offset, column in enumerate(extras, start=1):
-        planes[level_column + offset] = column
-    return np.ascontiguousarray(np.moveaxis(planes, 0, -1), dtype=np.float32)
+
+def _write_other(block: np.ndarray, offset: np.ndarray, velocity: np.ndarray,
+                 present: np.ndarray, cos: np.ndarray, sin: np.ndarray) -> None:
+    """One observed UAV's features (``OTHER_FEATURES``) into ``block``: where it is
+    (``offset`` from the UAV) and how it moves, turned into the frame; where ``present`` is
+    False, the still UAV far behind that stands for a missing one."""
+    rx, ry = offset[..., 0], offset[..., 1]
+    ovx, ovy = velocity[..., 0], velocity[..., 1]
+    px, py = block[0], block[1]
+    px[...] = rx * cos + ry * sin
+    py[...] = ry * cos - rx * sin
+    block[2] = ovx * cos + ovy * sin
+    block[3] = ovy * cos - ovx * sin
+    absent = ~present
+    if absent.any():
+        np.copyto(px, -ABSENT_DISTANCE, where=absent)
+        np.copyto(block[1:4], 0.0, where=absent)
+    np.hypot(px, py, out=block[4])
+    np.arctan2(py, px, out=block[5])
+
+
+def _write_absent(block: np.ndarray) -> None:
+    """A neighbour slot no observed UAV fills: a still UAV ``ABSENT_DISTANCE`` behind."""
+    block[0] = -ABSENT_DISTANCE
+    block[1:4] = 0.0
+    block[4] = ABSENT_DISTANCE
+    block[5] = np.pi
 
 
 def observation_state(

@@ -46,12 +46,18 @@ NO_ROUTES = RouteFields([], np.zeros(0, dtype=np.int64), np.zeros(0), 0.0, 0.0, 
 
 
 class ScoredDecision(NamedTuple):
+    """A decision with the scores and the safe cells' allowed actions it was chosen from."""
+
     decision: Decision
     score: np.ndarray  # (N, A) as LookaheadPolicy.scored gives it
     allowed: np.ndarray  # (N, A)
 
 
 class CompiledLookahead(LookaheadPolicy):
+    """The lookahead with its decision computed by the compiled core (``_lookahead.pyx``):
+    the same choices as ``LookaheadPolicy``, which it is tested against; the planner
+    ``planning.chosen`` picks unless ``JAMNAV_PLANNER=reference``."""
+
     def __init__(self, scenario: Scenario, value_net: ValueNetwork, shield: bool = True,
                  lookahead_depth: int | None = None, others_model: str | None = None):
         super().__init__(scenario, value_net, shield, lookahead_depth, others_model)

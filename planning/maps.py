@@ -38,8 +38,9 @@ class RadioMap(Protocol):
 
 
 MAP_SPACING_M = 0.5  # raster spacing of the lookahead's maps: well below a UAV's radius
-# Grid rows whose SINR-map features are computed at once: an agent's memory peaks 6 MiB above
-# its floor while it samples the icc2021 map (22 MiB with 64 rows, and no faster).
+# Grid rows whose SINR-map features are computed at once: few, so that an agent's memory peaks
+# little above its floor while it samples a map (BENCHMARKS.md, "Fleets of agent processes");
+# more rows at once were no faster.
 RASTER_BLOCK_ROWS = 16
 RASTER_TILE_COLUMNS = 64
 
@@ -153,7 +154,7 @@ class RasterMap:
         row, col = self.first.indices(xy)
         which = self.which.reshape(self.which.shape + (1,) * (xy.ndim - 2))
         _, rows, cols = self.stack.shape
-        return self.stack.ravel()[(which * rows + row) * cols + col]  # one index: 2x faster
+        return self.stack.ravel()[(which * rows + row) * cols + col]  # one index: faster than three
 
     def for_rows(self, rows: np.ndarray) -> RasterMap:
         subset = copy.copy(self)  # the rasters and their route caches are shared, not copied

@@ -118,8 +118,8 @@ class Network:
         network's bytes stay as they came). Training's weight decay leaves the weights of dead
         ReLU units below float32's normal range: a fifth of every shipped value network's. To
         any output they are zeros, but on some CPUs every multiply-add that touches one costs
-        as much as dozens of others: bench_policy's batch of 256 x 46 states took the shipped
-        extended network 41 ms with them, 2.8 ms without, on such a CPU. The forward then reads
+        as much as dozens of others (BENCHMARKS.md, "Foundation": subnormal weights). The
+        forward then reads
         copies, so a network over a torch module's memory (training) does not call this."""
         self._layers = [(_flushed(weight_t), _flushed(bias)) for weight_t, bias in self._layers]
         return self
@@ -152,6 +152,9 @@ class Network:
 
 
 class ValueNetwork(Network):
+    """The value network V(s^jn): a joint state to the value of its UAV's mission, scaled
+    from a tanh output; ``method`` says which method's features it reads."""
+
     kind = "value"
 
     def __init__(self, architecture: dict[str, Any], tensors: Mapping[str, np.ndarray]):
@@ -167,6 +170,9 @@ class ValueNetwork(Network):
 
 
 class SinrMapNetwork(Network):
+    """The SINR-mapping network: a place's features to the logits of its quantized SINR
+    level, from which the online map's rasters are sampled."""
+
     kind = "sinr_map"
 
     def __init__(self, architecture: dict[str, Any], tensors: Mapping[str, np.ndarray]):

@@ -126,6 +126,9 @@ def smallest_gaps(
 
 
 class Decision(NamedTuple):
+    """What the lookahead chose for each of N UAVs: the commanded speed and heading, the
+    action's index in the action set, and its score."""
+
     speed: np.ndarray  # (N,)
     heading: np.ndarray  # (N,)
     action: np.ndarray  # (N,) index into the action set
@@ -157,15 +160,17 @@ PUBLISHED_LOOKAHEAD = {"lookahead_depth": 1, "others_model": "constant_velocity"
 DEEP_SEARCH_LEAVES = 1 << 16  # leaves per forward pass of the deep search: bounds its memory
 # First moves a UAV at risk searches deeper: its DEEP_SEARCH_BEAM best by one step and its
 # DEEP_SEARCH_BEAM best escapes (moves after which some next move lands on a connected level),
-# so that an escape one step ranks low, a full turn out of a trap, is always searched. Table
-# I's settings, perfect map, seeds 0 and 1, 400 episodes: every first move of every UAV weak
-# now or about to be (36 % of decisions) flew 98.28 % success and 0.91 % disconnection at a
-# tenth of the one-step decisions/s; this (6 % of decisions searched) 98.21 % and 0.76 %
-# (docs/lookahead_depth.md).
+# so that an escape one step ranks low, a full turn out of a trap, is always searched. Searching
+# every first move of every UAV weak now or about to be flew no better, at a fraction of the
+# decisions a second (docs/lookahead_depth.md has the runs).
 DEEP_SEARCH_BEAM = 4
 
 
 class LookaheadPolicy:
+    """The one-step lookahead every UAV flies (Algorithm 1): scores each permissible action by
+    its reward plus the discounted value of the joint state it leads to, searching deeper for
+    a UAV at risk of disconnection. The numpy reference of the compiled core."""
+
     def __init__(self, scenario: Scenario, value_net: ValueNetwork, shield: bool = True,
                  lookahead_depth: int | None = None, others_model: str | None = None):
         """``shield=False`` flies without the method's safe cells even if it has them: how

@@ -13,10 +13,11 @@ Two solvers give the same fields, bit for bit: both settle on the one fixpoint o
 d[v] = min(d[v], d[u] + w(u, v)) over the same float64 edge weights, whatever the order of the
 relaxations (test). scipy's Dijkstra, in C, is fastest for the batches of destinations that
 training and the in-process flights ask for; but importing scipy's graph module costs a process
-about 31 MiB. An agent routes one UAV to one destination per map, so a single destination is
-swept in numpy instead (``_swept_fields``: about 2.2 ms on icc2021's grid with its margin,
-bench_policy, against Dijkstra's 0.6), and an agent never loads scipy. An agent told its next
-destination sweeps that field ahead, a line at a time between decisions (``sweep_ahead``).
+tens of MiB. An agent routes one UAV to one destination per map, so a single destination is
+swept in numpy instead (``_swept_fields``, slower than Dijkstra: bench_policy's route field
+row; BENCHMARKS.md, "Fleets of agent processes"), and an agent never loads scipy. An agent
+told its next destination sweeps that field ahead, a line at a time between decisions
+(``sweep_ahead``).
 """
 
 from __future__ import annotations
@@ -82,7 +83,7 @@ FIELDS_KEPT = 4096
 # in the order of their distance, so every node within the reach has its exact distance and
 # every node beyond reads infinity; a query that reads one has its field computed whole. So the
 # values read are those of the whole field, bit for bit, and most fields cover a disc about
-# the trip instead of the map: on the city's 400 m map about 3x less work.
+# the trip instead of the map: on a large map most of the work is saved.
 REACH_FACTOR = 1.5
 REACH_MARGIN_M = 30.0
 REACH_STEP_M = 50.0
@@ -204,7 +205,8 @@ class RouteGrid:
         the one before it. The two sweeps along an axis run at once, on two copies of the
         field stacked together (the second upside down, so that it too runs first to last),
         and each node keeps the shorter of the two: one numpy call relaxes a line of each,
-        which makes a field about a sixth cheaper than sweeping them one after the other."""
+        which makes a field cheaper than sweeping them one after the other (BENCHMARKS.md,
+        "Fleets of agent processes")."""
         # A border of infinity, so that every line reads three neighbours of each column.
         padded = np.full((self.rows + 2, self.cols + 2), np.inf)
         field = padded[1:-1, 1:-1]

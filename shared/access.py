@@ -31,7 +31,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, RootModel, ValidationError, model_validator
 
-from shared.messages import (
+from shared.events import (
     ChangeDetected,
     JammerChanged,
     JammerEstimated,
@@ -68,6 +68,8 @@ def roles(uavs: int, linked: bool = False, recorder: bool = False) -> list[str]:
 
 
 class Login(BaseModel):
+    """A user and password that a client session presents to a secure system's router."""
+
     # The router reads logins as ``user:password`` lines: neither may hold a line break, and
     # the user no colon.
     model_config = ConfigDict(extra="forbid", frozen=True)

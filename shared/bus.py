@@ -26,8 +26,9 @@ import zenoh
 import zenoh.ext
 
 from shared.access import Guard, Login
-from shared.messages import Message, MessageError, ProcessStatus, decode, encode
+from shared.process_status import ProcessStatus
 from shared.topics import Topics, uav_in_key
+from shared.wire import Message, MessageError, decode, encode
 
 M = TypeVar("M", bound=Message)
 

@@ -176,7 +176,7 @@ class Measurement(BaseModel):
 
 # Measurement's fields in order. An agent holds the measurements it takes as plain tuples in
 # this order (a model per record cost its flight loop more than everything else it does with
-# one) and uploads them as maps with these keys: ``shared.messages.encode_upload``.
+# one) and uploads them as maps with these keys: ``shared.cloud_messages.encode_upload``.
 MEASUREMENT_FIELDS = tuple(Measurement.model_fields)
 
 
@@ -354,7 +354,7 @@ class SpotFilter:
     """
 
     def __init__(self, scenario: Scenario, uavs: int):
-        # A 0-d array: numpy compares an array with it three times faster than with a float.
+        # A 0-d array: numpy compares an array with it faster than with a float.
         self.spacing = np.array(scenario.uav.measurement_spacing_m)
         self.last_xy = np.full((uavs, 2), np.inf)
         self.last_level = np.full(uavs, -1, dtype=np.int64)

@@ -2,7 +2,7 @@
 
 Apart from ``shared.observation`` because only the world and the in-process flights look for
 neighbours among many UAVs: an agent is sent its neighbours, and scipy.spatial would cost each
-agent process 7.5 MiB of memory for nothing.
+agent process memory for nothing (BENCHMARKS.md, "Fleets of agent processes").
 """
 
 from __future__ import annotations

@@ -20,6 +20,8 @@ from shared.kinematics import closest_approach
 
 
 class Outcome(IntEnum):
+    """How a UAV's mission stands: active, or the one way it ended."""
+
     ACTIVE = 0
     SUCCESS = 1
     DISCONNECTION = 2

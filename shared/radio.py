@@ -48,6 +48,9 @@ def as_jammers(jammers: Jammers) -> tuple[JammerParams, ...]:
 
 
 class RadioReading(NamedTuple):
+    """The radio model's answer at some points: the SINR (linear and dB), its quantized
+    level and the ground station that serves each point."""
+
     sinr: np.ndarray  # linear
     sinr_db: np.ndarray
     level: np.ndarray  # int8, 0 = below the threshold T_s

@@ -9,6 +9,9 @@ from shared.scenario import Scenario
 
 
 class RewardModel:
+    """The paper's reward R = R_c + R_s + R_d + R_t for a step, the one the world books and
+    the lookahead predicts."""
+
     def __init__(self, scenario: Scenario):
         rewards = scenario.rewards
         self.collision = rewards.collision

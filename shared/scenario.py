@@ -298,6 +298,9 @@ class OnlineMap(_Strict):
 
 
 class Scenario(_Strict):
+    """A whole scenario file, validated: the area, stations, UAVs, radio channel, jammer,
+    rewards, missions, policy, training and online map every process of a run reads."""
+
     name: str
     area: Area
     gbs: Gbs

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 
 # The periodic grid spans at least this many decorrelation distances per side, so that the
 # covariance has fallen to exp(-5) where it wraps round: its embedding is then nonnegative
-# definite but for eigenvalues of ~1e-7 of the largest (measured), which are set to zero.
+# definite but for eigenvalues at the level of rounding, which are set to zero.
 _PERIOD_IN_DECORRELATIONS = 10
 # A periodic grid beyond this many points per side (a 1,000 m area at 1 m spacing) is a
 # mistake in the scenario, a spacing far too fine for the area or a decorrelation distance far

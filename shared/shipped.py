@@ -34,9 +34,8 @@ VALUE_NET_HELP = ("value network: a shipped one by name (extended, the best for 
                   "method; paper-tt6, the paper's method trained for --scenario icc2021-tt6) or "
                   "a safetensors path")
 # What makes a fleet a crowd is how many UAVs meet, and the features are local: so density, not
-# count (the city's 64 UAVs on 16 ha fly as icc2021's 4 on 1 ha). Measured on Table I's
-# settings, proposed, seed 0 (BENCHMARKS.md, "Planning"): at 16 per hectare extended-crowd
-# 94.7 % against 93.8 %; at 8 per hectare 96.8 % against 96.7 %, a tie.
+# count (the city's 64 UAVs on 16 ha fly as icc2021's 4 on 1 ha). At 16 per hectare the crowd's
+# network flies better, at 8 the two tie (BENCHMARKS.md, "Planning").
 CROWD_UAVS_PER_HECTARE = 8.0
 
 

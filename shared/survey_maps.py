@@ -25,7 +25,7 @@ def sinr_map_for(scenario: Scenario) -> Path:
     (``Scenario.survey_world``), whatever the scenario is called: a copy of a shipped scenario
     with other missions or planning values shares its map. A world no shipped map was learned
     in raises ``NoSurveyMapError``: a map of another world would be flown as if it were
-    right (icc2021's map in icc2021-shadowed's world: 84 % success instead of 98 %)."""
+    right (README: icc2021's map in icc2021-shadowed's world cost 14 points of success)."""
     world = scenario.survey_world()
     differences = {}
     for name, path in _SURVEY_MAPS.items():

@@ -61,6 +61,9 @@ def uav_in_key(key: str) -> str | None:
 
 @dataclass(frozen=True)
 class Topics:
+    """Every key expression of one system, under its prefix: what each process publishes,
+    subscribes to, queries and serves (docs/topics.md lists them with their messages)."""
+
     prefix: str = DEFAULT_PREFIX
 
     def __post_init__(self) -> None:

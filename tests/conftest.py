@@ -8,7 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from shared.scenario import SCENARIO_DIR, Scenario, load_scenario
+from shared.threads import one_blas_thread
+
+# The test run is a program of its own: its in-process flights and the processes it starts run
+# BLAS on one thread, as the system's do. Set before numpy loads (shared.scenario loads it).
+one_blas_thread(os.environ)
+
+from shared.scenario import SCENARIO_DIR, Scenario, load_scenario  # noqa: E402
 
 
 def pytest_sessionstart(session) -> None:
@@ -81,8 +87,8 @@ def supervisor():
 # fixtures are built once).
 SYSTEM_MODULES = frozenset({
     "test_bus_inprocess", "test_bus_supervisor", "test_chaos", "test_checkpoint",
-    "test_console_browser", "test_faults", "test_fuzz", "test_packaging", "test_recording",
-    "test_security", "test_two_routers",
+    "test_console_browser", "test_examples", "test_faults", "test_fuzz", "test_packaging",
+    "test_recording", "test_security", "test_two_routers",
 })
 
 

@@ -17,16 +17,11 @@ from pathlib import Path
 from cloud_service.process import CloudService
 from cloud_service.sinr_mapping import RetrainConfig
 from shared import bus
-from shared.messages import (
-    JammerCommand,
-    JammerInfo,
-    JammerReply,
-    MessageError,
-    ProcessStatus,
-    decode,
-    decode_event,
-)
+from shared.events import decode_event
+from shared.jammer_messages import JammerCommand, JammerInfo, JammerReply
+from shared.process_status import ProcessStatus
 from shared.topics import Topics
+from shared.wire import MessageError, decode
 from uav_agent.process import AgentService
 from world_sim.process import WorldConfig, WorldService
 

@@ -13,20 +13,14 @@ from hypothesis import strategies as st
 
 from cloud_service.evaluation import transient_episodes
 from cloud_service.sinr_mapping import ChangeDetector
+from shared.events import JammerEstimated, decode_event
+from shared.jammer_messages import JammerEstimate, describe_estimate
 from shared.measurements import SpotFilter
-from shared.messages import (
-    JammerEstimate,
-    JammerEstimated,
-    MessageError,
-    decode,
-    decode_event,
-    describe_estimate,
-    encode,
-    zenoh_cli_decoder,
-)
 from shared.paper import JammerSetting
 from shared.scenario import load_scenario
 from shared.topics import Topics
+from shared.wire import MessageError, decode, encode
+from shared.zenoh_cli_codec import zenoh_cli_decoder
 from tests.conftest import variant
 from world_sim.core import VectorWorld, episode_seed
 from world_sim.jammers import swapping_jammers
@@ -243,7 +237,7 @@ def test_the_report_shows_a_run_of_refinements_as_its_first_and_last_map():
 
 
 def test_the_mapper_summary_says_when_the_map_in_service_is_provisional():
-    from shared.messages import ProcessStatus, mapper_summary
+    from shared.process_status import ProcessStatus, mapper_summary
 
     def cloud(**details) -> ProcessStatus:
         return ProcessStatus(role="cloud", ident="0", pid=1, t=0.0, sinr_version=5,

@@ -16,7 +16,8 @@ ROOT = Path(__file__).resolve().parent.parent
 FLY_ONCE = """
 import json, logging, sys
 import uav_agent.process
-from shared.messages import AgentObservation, SinrMap, ValueWeights
+from shared.cloud_messages import SinrMap, ValueWeights
+from shared.world_messages import AgentObservation
 from planning.networks import sha256
 from shared.scenario import load_scenario
 from shared.shipped import VALUE_NET

@@ -7,9 +7,10 @@ import logging
 import numpy as np
 
 from planning.networks import sha256
-from shared.messages import AgentObservation, SinrMap, ValueWeights
+from shared.cloud_messages import SinrMap, ValueWeights
 from shared.shipped import EXTENDED_VALUE_NET
 from shared.survey_maps import sinr_map_for
+from shared.world_messages import AgentObservation
 from uav_agent.process import ROUTE_FIELDS_KEPT, Models
 
 

@@ -17,16 +17,11 @@ from cloud_service.sinr_mapping import RetrainConfig
 from jamnav.cli import main as jamnav
 from planning.networks import load_network, save_bytes, sha256
 from planning.routes import RouteGrid
-from shared.messages import (
-    AgentObservation,
-    JammerCommand,
-    JammerEstimate,
-    JammerInfo,
-    ValueWeights,
-    decode,
-    encode,
-)
+from shared.cloud_messages import ValueWeights
+from shared.jammer_messages import JammerCommand, JammerEstimate, JammerInfo
 from shared.shipped import VALUE_NET
+from shared.wire import decode, encode
+from shared.world_messages import AgentObservation
 from tests.support import running, wait_until
 
 torch.set_num_threads(1)

@@ -10,27 +10,15 @@ import msgpack
 import numpy as np
 import pytest
 
+from shared.cloud_messages import MeasurementUpload, RasterGrid, SinrMap, ValueWeights
+from shared.events import UavOutcomes, decode_event
+from shared.jammer_messages import JammerCommand, JammerInfo
 from shared.measurements import Measurement
-from shared.messages import (
-    Action,
-    AgentObservation,
-    JammerCommand,
-    JammerInfo,
-    MeasurementRound,
-    MeasurementUpload,
-    MessageError,
-    RasterGrid,
-    SinrMap,
-    UavOutcomes,
-    ValueWeights,
-    decode,
-    decode_event,
-    encode,
-    zenoh_cli_decoder,
-    zenoh_cli_encoder,
-)
 from shared.observation import Observation
 from shared.topics import Topics
+from shared.wire import MessageError, decode, encode
+from shared.world_messages import Action, AgentObservation, MeasurementRound
+from shared.zenoh_cli_codec import zenoh_cli_decoder, zenoh_cli_encoder
 from world_sim.core import VectorWorld, episode_seed
 
 

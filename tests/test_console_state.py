@@ -17,21 +17,13 @@ from jamnav.console import listen
 from jamnav.console.maps import CoverageMaps
 from jamnav.console.state import TIMELINE_IN_FRAME, ConsoleState, jammer_request
 from planning.networks import sha256
-from shared.messages import (
-    ChangeDetected,
-    JammerChanged,
-    JammerEstimate,
-    JammerInfo,
-    RasterGrid,
-    RunFinished,
-    SinrMap,
-    UavOutcomes,
-    WorldState,
-    decode,
-    encode,
-)
+from shared.cloud_messages import RasterGrid, SinrMap
+from shared.events import ChangeDetected, JammerChanged, RunFinished, UavOutcomes
+from shared.jammer_messages import JammerEstimate, JammerInfo
 from shared.radio import RadioModel
 from shared.shipped import SINR_MAP_NO_JAMMER
+from shared.wire import decode, encode
+from shared.world_messages import WorldState
 
 T = 1_700_000_000.0
 

@@ -15,10 +15,12 @@ from jamnav.supervisor import fleet_line
 from planning.maps import MAP_SPACING_M, LevelRaster, RasterMap
 from planning.networks import load_network
 from planning.reference import LookaheadPolicy
-from shared.messages import AgentObservation, ProcessStatus, WorldState, decode, encode
 from shared.observation import Observation, decision_reach, decision_relevant
+from shared.process_status import ProcessStatus
 from shared.radio import RadioModel
 from shared.shipped import VALUE_NETS
+from shared.wire import decode, encode
+from shared.world_messages import AgentObservation, WorldState
 from world_sim.core import VectorWorld, episode_seed
 from world_sim.process import observation_sent
 

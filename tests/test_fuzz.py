@@ -23,26 +23,20 @@ from cloud_service.process import CLOCK_SKEW_S
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
 from planning.networks import sha256
 from shared import bus
+from shared.cloud_messages import MeasurementUpload, SinrMap, ValueWeights
+from shared.events import JammerChanged, UavOutcomes, decode_event
+from shared.jammer_messages import JammerCommand
 from shared.measurements import Measurement, MeasurementSpec, scenario_features
-from shared.messages import (
+from shared.topics import Topics
+from shared.wire import MessageError, decode, encode
+from shared.world_messages import (
     Action,
     AgentObservation,
-    JammerChanged,
-    JammerCommand,
     MeasurementRound,
-    MeasurementUpload,
-    MessageError,
     RoundClosed,
     RoundOpened,
-    SinrMap,
-    UavOutcomes,
-    ValueWeights,
     WorldState,
-    decode,
-    decode_event,
-    encode,
 )
-from shared.topics import Topics
 from tests.support import Drained, free_endpoint, gone, statuses, wait_until
 
 PER_TOPIC = 10_000

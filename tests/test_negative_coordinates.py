@@ -10,7 +10,7 @@ import pytest
 from cloud_service.process import build_parser as cloud_parser
 from jamnav.cli import main
 from jamnav.supervisor import Child, Supervisor, UpConfig
-from shared.messages import JammerInfo
+from shared.jammer_messages import JammerInfo
 from tests.test_radio import reference_sinr_db
 from world_sim.process import build_parser as world_parser
 

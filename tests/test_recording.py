@@ -20,8 +20,11 @@ from mcap.writer import Writer
 from jamnav.cli import main as jamnav
 from jamnav.recording import Recording, RecordingError, RecordingWriter
 from shared import access, bus
-from shared.messages import Action, MessageError, UavOutcomes, ValueWeights, WorldState, encode
+from shared.cloud_messages import ValueWeights
+from shared.events import UavOutcomes
 from shared.topics import Topics
+from shared.wire import MessageError, encode
+from shared.world_messages import Action, WorldState
 from tests.support import Drained, free_endpoint, wait_until
 
 ROOT = Path(__file__).resolve().parent.parent

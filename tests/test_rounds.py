@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from cloud_service.rounds import RoundDesk
-from shared.messages import MeasurementUpload, RoundOpened
+from shared.cloud_messages import MeasurementUpload
+from shared.world_messages import RoundOpened
 
 
 def _upload(uav: int, round_number: int) -> MeasurementUpload:

@@ -17,9 +17,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from shared.cloud_messages import MeasurementUpload
 from shared.measurements import Measurement, SpotFilter, scenario_features
-from shared.messages import AgentObservation, MeasurementUpload, decode, encode
 from shared.topics import Topics
+from shared.wire import decode, encode
+from shared.world_messages import AgentObservation
 from tests.support import wait_until
 from uav_agent import process, uploads
 from uav_agent.process import main as agent_main
@@ -303,7 +305,7 @@ def test_new_maps_are_built_beside_the_deciding_thread_and_never_replaced_by_old
     """A map's raster takes tens of milliseconds: the agent's "maps" thread builds it, and the
     deciding thread only swaps it in. A version built late never replaces a newer one."""
     from planning.networks import sha256
-    from shared.messages import SinrMap
+    from shared.cloud_messages import SinrMap
     from shared.survey_maps import sinr_map_for
 
     data = sinr_map_for(scenario).read_bytes()
@@ -350,7 +352,7 @@ def test_a_map_version_named_before_it_arrived_is_asked_of_the_cloud_and_flown(s
     flown if it is the one named; a version the cloud has not published either (a forgery)
     is not waited for."""
     from planning.networks import sha256
-    from shared.messages import SinrMap
+    from shared.cloud_messages import SinrMap
     from shared.survey_maps import sinr_map_for
 
     data = sinr_map_for(scenario).read_bytes()

@@ -5,8 +5,8 @@ follows new versions (subscriptions), checking each one's digest and shape and k
 last good one otherwise. For every observation the world sends it, it publishes an action and
 records its SINR measurement; measurements go to the cloud in small batches.
 
-On the lockstep clock with the online map (``shared.messages``, MeasurementRound) it uploads
-each round's reports at once and decides on the map version the world names.
+On the lockstep clock with the online map (``shared.world_messages``, MeasurementRound) it
+uploads each round's reports at once and decides on the map version the world names.
 
 It knows what the paper's UAV knows: its own state and missions, its own SINR measurements, the
 other UAVs' positions and velocities, and the maps the cloud sends. Nothing else reaches it
@@ -37,21 +37,14 @@ from planning.maps import LevelRaster, RasterMap, sinr_network_raster
 from planning.networks import WeightsError, from_bytes
 from planning.reference import LookaheadPolicy
 from shared import access, bus
+from shared.cloud_messages import MAX_UPLOAD, SinrMap, ValueWeights
+from shared.events import WeightsRefused
 from shared.measurements import MeasurementSpec, SpotFilter, scenario_features
-from shared.messages import (
-    MAX_UPLOAD,
-    Action,
-    AgentObservation,
-    JoinReply,
-    MeasurementRound,
-    ProcessStatus,
-    SinrMap,
-    ValueWeights,
-    WeightsRefused,
-    encode,
-)
+from shared.process_status import ProcessStatus
 from shared.scenario import MAX_UAVS, Scenario, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
+from shared.wire import encode
+from shared.world_messages import Action, AgentObservation, JoinReply, MeasurementRound
 from uav_agent.uploads import (
     DEFAULT_BATCH,
     DEFAULT_CAPACITY,
@@ -65,8 +58,8 @@ ROLE = "agent"
 TIMINGS_KEPT = 4096
 # Route fields an agent keeps per map: its current destination's and its next one's, and room
 # for the destinations of an episode the world flies again after a restart. Kept for every
-# destination, they would pile up for as long as one map is flown (12 KiB each on icc2021,
-# 41 KiB in the city: 49 and 166 MiB at the in-process default of 4,096).
+# destination, they would pile up for as long as one map is flown (BENCHMARKS.md, "Fleets of
+# agent processes").
 ROUTE_FIELDS_KEPT = 4
 MAP_WAIT_S = 30.0  # how long a decision waits for the map version the world names
 MAP_QUERY_S = 2.0  # how long it waits for the cloud's answer about a version not heard of
@@ -187,6 +180,10 @@ class Models:
 
 
 class AgentService:
+    """One UAV's agent process: decide an action for each observation the world sends, with
+    the networks the cloud serves, and upload its measurements to the cloud (kept in an
+    outbox until stored)."""
+
     def __init__(self, session, topics: Topics, scenario: Scenario, uav: int,
                  log: logging.Logger, upload_every: int = DEFAULT_BATCH,
                  upload_after: float = DEFAULT_MAX_AGE_S,
@@ -323,7 +320,7 @@ class AgentService:
     def _sweep_ahead(self, observation: AgentObservation) -> None:
         """Sweep the route field to the UAV's next destination on the map in use, a line at a
         time while no observation waits: the next mission's first decision then finds it ready
-        instead of sweeping it (2-5 ms, which made those decisions an agent's slowest). Only
+        instead of sweeping it (which made those decisions an agent's slowest). Only
         the extended method reads route fields."""
         radio_map, destination = self.models.radio_map, observation.next_destination
         if destination is None or not self.models.policy.options.route_distance:

@@ -35,8 +35,8 @@ from pathlib import Path
 import msgpack
 
 from shared import bus
+from shared.cloud_messages import MAX_UPLOAD, UploadReceipt, encode_upload
 from shared.measurements import MEASUREMENT_FIELDS, Measurement
-from shared.messages import MAX_UPLOAD, UploadReceipt, encode_upload
 
 DEFAULT_CAPACITY = 20_000  # measurements: over 3 minutes of a UAV at 100 steps/s
 # Measurements per upload: each upload costs the cloud a transaction and the agent a round trip
@@ -45,9 +45,8 @@ DEFAULT_CAPACITY = 20_000  # measurements: over 3 minutes of a UAV at 100 steps/
 DEFAULT_BATCH = 64
 # Wall seconds a measurement waits for company before it goes alone. What the cloud has not
 # received it cannot use to detect a change: in real time at 10 steps/s an agent keeps about 2
-# measurements a step (de-duplicated), so 64 take 3 s and the age decides. At 1 s a jammer set
-# 15 s into a 4-UAV run was detected 0.92 s after the command; a quarter of a second costs an
-# agent at most 4 uploads a second.
+# measurements a step (de-duplicated), so 64 take 3 s and the age decides: the time to detect
+# a jammer set follows it. A quarter of a second costs an agent at most 4 uploads a second.
 DEFAULT_MAX_AGE_S = 0.25
 RECEIPT_TIMEOUT_S = 5.0  # a cloud busy retraining still answers well within this
 RETRY_FIRST_S, RETRY_MAX_S = 0.2, 2.0

@@ -1,7 +1,5 @@
 """The world simulator. ``parallel_env`` (PettingZoo) is imported on first use only."""
 
-import shared  # noqa: F401  (pins the BLAS threads before numpy loads)
-
 
 def __getattr__(name: str):
     if name in ("parallel_env", "JamnavParallelEnv"):

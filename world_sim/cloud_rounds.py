@@ -1,12 +1,13 @@
-"""The world's side of the cloud on the lockstep clock (``shared.messages``, MeasurementRound):
-the cloud's answers to the rounds, and the map version each decision flies."""
+"""The world's side of the cloud on the lockstep clock (``shared.world_messages``,
+MeasurementRound): the cloud's answers to the rounds, and the map version each decision
+flies."""
 
 from __future__ import annotations
 
 import threading
 import time
 
-from shared.messages import RoundClosed
+from shared.world_messages import RoundClosed
 
 
 class CloudRounds:

@@ -40,6 +40,9 @@ def episode_seed(master_seed: int, episode: int) -> int:
 
 
 class StepResult(NamedTuple):
+    """What a world step did: each UAV's reward, whose missions ended, and which
+    environments have finished."""
+
     reward: np.ndarray  # (E, J); 0 for UAVs that were already finished
     finished: np.ndarray  # (E, J) bool: the mission ended in this step
     env_done: np.ndarray  # (E,) bool: every UAV of the environment has finished

@@ -84,6 +84,9 @@ def parallel_env(
 
 
 class JamnavParallelEnv(ParallelEnv):
+    """The world as a PettingZoo parallel environment: one environment of ``VectorWorld``,
+    discrete actions and per-UAV observations as the module docstring lays them out."""
+
     metadata = {
         "name": "jamnav_v0",
         "render_modes": ["human", "rgb_array"],

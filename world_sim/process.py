@@ -32,32 +32,25 @@ import numpy as np
 import zenoh
 
 from shared import access, bus
-from shared.messages import (
-    Action,
-    AgentObservation,
-    Clock,
-    JammerChanged,
-    JammerCommand,
-    JammerInfo,
-    JammerReply,
-    JoinReply,
-    MeasurementRound,
-    MessageError,
-    ProcessStatus,
-    RoundClosed,
-    RoundOpened,
-    RunFinished,
-    UavOutcomes,
-    WorldState,
-    decode,
-    encode,
-    outcome_labels,
-)
+from shared.events import JammerChanged, RunFinished, UavOutcomes, outcome_labels
+from shared.jammer_messages import JammerCommand, JammerInfo, JammerReply
 from shared.observation import Observation, decision_reach, decision_relevant
 from shared.paper import JammerSetting
+from shared.process_status import ProcessStatus
 from shared.radio import RadioModel
 from shared.scenario import MAX_UAVS, Scenario, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
+from shared.wire import MessageError, decode, encode
+from shared.world_messages import (
+    Action,
+    AgentObservation,
+    Clock,
+    JoinReply,
+    MeasurementRound,
+    RoundClosed,
+    RoundOpened,
+    WorldState,
+)
 from world_sim.cloud_rounds import CloudRounds
 from world_sim.core import VectorWorld, episode_seed, fleet_observation
 from world_sim.jammers import swapping_jammers
@@ -69,6 +62,9 @@ OUTCOMES_KEPT = 1000  # episodes whose outcomes a late or reconnected subscriber
 
 @dataclass(frozen=True)
 class WorldConfig:
+    """How a world process runs: its fleet and seed, how long, on which clock, and how
+    long it waits for agents and the cloud."""
+
     uavs: int
     seed: int = 0
     episodes: int | None = None  # None: until stopped (or ``duration``)
@@ -243,6 +239,10 @@ def observation_sent(world: VectorWorld) -> tuple[Observation, np.ndarray]:
 
 
 class WorldService:
+    """The world process's work: step the fleet on its clock, hand each agent its
+    observation and reports, take their actions, apply jammer commands between steps, and
+    publish the fleet state, events and outcomes."""
+
     def __init__(self, session: zenoh.Session, topics: Topics, scenario: Scenario,
                  config: WorldConfig, jammer: JammerInfo | None, log: logging.Logger):
         self.session, self.topics, self.config, self.log = session, topics, config, log

@@ -15,16 +15,12 @@ from jamnav.console.maps import CoverageMaps
 from jamnav.console.state import ConsoleState
 from planning.networks import WeightsError
 from shared import bus
-from shared.messages import (
-    JammerCommand,
-    JammerEstimate,
-    JammerReply,
-    MessageError,
-    SinrMap,
-    WorldState,
-    decode_event,
-)
+from shared.cloud_messages import SinrMap
+from shared.events import decode_event
+from shared.jammer_messages import JammerCommand, JammerEstimate, JammerReply
 from shared.topics import Topics
+from shared.wire import MessageError
+from shared.world_messages import WorldState
 
 ASK_EVERY_S = 1.0  # until the world and the cloud have answered once: they may start later
 DRAW_EVERY_S = 0.1

@@ -11,8 +11,9 @@ import numpy as np
 
 from planning.maps import LevelRaster
 from planning.networks import from_bytes, predict_levels
+from shared.cloud_messages import SinrMap
+from shared.jammer_messages import JammerInfo
 from shared.measurements import MeasurementSpec, scenario_features
-from shared.messages import JammerInfo, SinrMap
 from shared.radio import RadioModel
 from shared.scenario import Scenario
 

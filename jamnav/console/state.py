@@ -13,15 +13,11 @@ from typing import Any
 
 from jamnav.arguments import UsageError, jammer_command
 from jamnav.event_lines import describe_event
-from shared.messages import (
-    JammerCommand,
-    JammerEstimate,
-    JammerInfo,
-    SinrMap,
-    UavOutcomes,
-    WorldState,
-)
+from shared.cloud_messages import SinrMap
+from shared.events import UavOutcomes
+from shared.jammer_messages import JammerCommand, JammerEstimate, JammerInfo
 from shared.outcomes import FINAL_OUTCOMES
+from shared.world_messages import WorldState
 
 TRAIL_POINTS = 600  # per UAV and episode: ten times the shipped episode limit
 TIMELINE_KEPT = 200
@@ -67,7 +63,7 @@ class ConsoleState:
             self.revision += 1
 
     def on_event(self, event) -> None:
-        """Any event of ``shared.messages``: outcomes are counted, the jammer followed, and
+        """Any event of ``shared.events``: outcomes are counted, the jammer followed, and
         what people care about goes on the timeline (in the supervisor's words)."""
         with self._lock:
             if isinstance(event, UavOutcomes):
