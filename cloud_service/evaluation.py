@@ -49,7 +49,7 @@ from shared.scenario import MAX_UAVS, Scenario
 from shared.shipped import value_net_for
 from shared.survey_maps import NoSurveyMapError, sinr_map_for
 from world_sim.core import VectorWorld
-from world_sim.jammers import JammerSchedule, swapping_jammers
+from world_sim.jammers import JammerSchedule, JammerSet, described_jammers, swapping_jammers
 
 METHODS = ("proposed", "perfect", "outdated", "orca", "straight")
 LOOKAHEAD_METHODS = ("proposed", "perfect", "outdated")  # the rest fly without a value network
@@ -182,7 +182,7 @@ def evaluate(
     method: str,
     episodes: int,
     seed: int,
-    jammer: JammerSetting | None,
+    jammer: JammerSetting | JammerSet | None,
     uavs: int | None = None,
     value_net: Path | None = None,
     sinr_map: Path | None = None,
@@ -206,9 +206,9 @@ def evaluate(
         _check_integer("uavs", uavs, 1, MAX_UAVS)
     if swap_every is not None:
         _check_integer("swap_every", swap_every, 1)
-    if jammer is not None and not isinstance(jammer, JammerSetting):
-        raise EvaluationError(f"jammer {jammer!r}: expected a JammerSetting(x, y, power_w) or "
-                              "None")
+    if jammer is not None and not isinstance(jammer, JammerSetting | tuple):
+        raise EvaluationError(f"jammer {jammer!r}: expected a JammerSetting(x, y, power_w), a "
+                              "scenario's jammers or None")
     schedule = swapping_jammers(scenario, jammer, swap_every, seed)
     online = None
     with tempfile.TemporaryDirectory(prefix="jamnav-eval-") as scratch:
@@ -254,7 +254,7 @@ def evaluate(
         "episodes": episodes,
         "uavs": int(results.outcomes.shape[1]),
         "seed": seed,
-        "jammer": None if jammer is None else jammer._asdict(),
+        "jammers": described_jammers(schedule(0)),
         "swap_every": swap_every,
         "scenario": scenario.name,
         **outcome_rates(results.outcomes),
@@ -271,8 +271,8 @@ def evaluate(
         report["cloud_latency_s"] = scenario.online_map.cloud_latency_s
         report["flight_seconds"] = round(online.now, 3)  # what the cloud saw flown, all told
     if swap_every is not None:
-        report["jammers"] = [
-            {"from_episode": k, "jammer": None if (s := schedule(k)) is None else s._asdict()}
+        report["swaps"] = [
+            {"from_episode": k, "jammers": described_jammers(schedule(k))}
             for k in range(0, episodes, swap_every)]
     report["outcomes"] = [[Outcome(code).label for code in row] for row in results.outcomes]
     return report

@@ -54,10 +54,16 @@ from shared.events import (
     RetrainFailed,
     SinrWeightsPublished,
 )
-from shared.jammer_messages import JammerEstimate, JammerInfo, describe_estimate
+from shared.jammer_messages import (
+    JammerEstimate,
+    JammerInfo,
+    JammersInForce,
+    describe_estimate,
+    describe_jammers,
+    initial_jammers,
+)
 from shared.measurements import MeasurementBatch, MeasurementSpec
 from shared.process_status import ProcessStatus
-from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
 from shared.shipped import DEFAULT_VALUE_NET, EXTENDED_VALUE_NET, VALUE_NET_HELP, value_net_path
 from shared.survey_maps import foreign_survey_map, sinr_map_for
@@ -73,9 +79,9 @@ _VERSION_FILE = re.compile(r"^sinr_map_v(\d+)\.safetensors$")
 
 
 def raster_map(scenario: Scenario, maps: RasterMaps, mode: MapMode, version: int,
-               jammer: JammerInfo | None) -> SinrMap:
+               jammers: JammersInForce) -> SinrMap:
     """The true (``perfect``) or no-jammer (``outdated``) map as the lookahead's raster."""
-    raster = maps.raster(JammerInfo.params(jammer) if mode == "perfect" else None)
+    raster = maps.raster(JammerInfo.params(jammers) if mode == "perfect" else None)
     data = raster.levels.tobytes()
     rows, cols = raster.levels.shape
     return SinrMap(version=version, mode=mode, sha256=sha256(data), data=data,
@@ -118,7 +124,7 @@ class CloudService:
 
     def __init__(self, session, topics: Topics, scenario: Scenario, mode: MapMode,
                  run_dir: Path, log: logging.Logger, *, value_net: Path = EXTENDED_VALUE_NET,
-                 sinr_net: Path | None = None, jammer: JammerInfo | None = None,
+                 sinr_net: Path | None = None, jammers: JammersInForce = (),
                  retrain: RetrainConfig | None = None, lockstep: bool = False):
         self.session, self.topics, self.scenario, self.mode, self.log = (
             session, topics, scenario, mode, log)
@@ -142,7 +148,7 @@ class CloudService:
                                                      scenario.timing.step_s), self.sinr.version)
         else:
             self.raster_maps = RasterMaps(scenario)
-            self.sinr = raster_map(scenario, self.raster_maps, mode, 1, jammer)
+            self.sinr = raster_map(scenario, self.raster_maps, mode, 1, jammers)
         self.value_pub = bus.reliable_publisher(session, topics.value_weights)
         self.sinr_pub = bus.reliable_publisher(session, topics.sinr_map)
         self.estimate_pub = bus.reliable_publisher(session, topics.jammer_estimate)
@@ -358,11 +364,12 @@ class CloudService:
     def _follow_jammer(self, change: JammerChanged) -> None:
         with self._lock:
             version = self.sinr.version + 1
-        update = raster_map(self.scenario, self.raster_maps, self.mode, version, change.jammer)
+        update = raster_map(self.scenario, self.raster_maps, self.mode, version,
+                            tuple(change.jammers))
         with self._lock:
             self.sinr = update
         self.sinr_pub.put(encode(update))
-        self.log.info("true map v%d published for jammer %s", version, change.jammer)
+        self.log.info("true map v%d published: %s", version, describe_jammers(change.jammers))
 
     def _on_retrained(self, weights: PublishedWeights) -> None:
         """Runs on the mapper's retraining thread."""
@@ -440,6 +447,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "in service (default: the scenario's online_map.cloud_latency_s)")
     jam = parser.add_mutually_exclusive_group()
     jam.add_argument("--jammer", metavar="X,Y,P[,H]", help="initial jammer (map perfect)")
+    jam.add_argument("--jammers", metavar="JSON",
+                     help="initial jammers (map perfect), as messages carry them")
     jam.add_argument("--no-jammer", action="store_true")
     return parser
 
@@ -475,14 +484,10 @@ def cloud_setup(args: argparse.Namespace) -> bus.ServiceSetup:
     if args.clock == "lockstep" and args.map != "online":
         raise ValueError("--clock lockstep is the online map's: --map perfect and outdated "
                          "follow the world's jammer instead")
-    jammer = None
-    if not args.no_jammer:
-        default = RadioModel.jammer_of(scenario)
-        if args.jammer is not None:
-            jammer = JammerInfo.parse(args.jammer, scenario.jammer.height_m)
-        elif default is not None:
-            jammer = JammerInfo(x=default.x, y=default.y, power_w=default.power_w,
-                                height_m=default.height_m)
+    jammers = initial_jammers(scenario, args.jammer, args.jammers, args.no_jammer)
+    if args.map == "perfect" and any(not jammer.as_jammer(scenario).still for jammer in jammers):
+        raise ValueError("--map perfect serves the true map of still jammers; one of these "
+                         "moves or switches")
     retrain = None
     if args.retrain_samples is not None:
         if args.retrain_samples < 2:
@@ -498,7 +503,7 @@ def cloud_setup(args: argparse.Namespace) -> bus.ServiceSetup:
             cloud = CloudService(session, topics, scenario, args.map, Path(args.run_dir), log,
                                  value_net=value_net_path(args.value_net),
                                  sinr_net=sinr_net,
-                                 jammer=jammer, retrain=retrain,
+                                 jammers=jammers, retrain=retrain,
                                  lockstep=args.clock == "lockstep")
         except (WeightsError, ValueError) as exc:
             return bus.bad_arguments(ROLE, exc)

@@ -19,11 +19,11 @@ from planning.maps import MAP_SPACING_M, LevelRaster, RadioMap, RasterMap
 from planning.orca import orca_velocities, preferred_velocity_toward
 from planning.reference import LookaheadPolicy
 from shared.outcomes import Outcome
-from shared.paper import JammerSetting, jammer_params
+from shared.paper import JammerSetting
 from shared.radio import JammerParams, Jammers, RadioModel, as_jammers
 from shared.scenario import Scenario
 from world_sim.core import StepResult, VectorWorld, episode_seed, fleet_observation
-from world_sim.jammers import JammerSchedule
+from world_sim.jammers import JammerSchedule, JammerSet, jammer_set
 
 MapFor = Callable[[VectorWorld, np.ndarray], RadioMap]
 
@@ -212,7 +212,7 @@ class EvaluationBook(EpisodeHooks):
                                       np.zeros(episodes, dtype=np.int64))
 
     def start(self, env: int, episode: int) -> None:
-        self.world.set_jammer([env], jammer_params(self.world.scenario, self.jammer_at(episode)))
+        self.world.set_jammers([env], self.jammer_at(episode))
         self.world.reset([env], [episode_seed(self.seed, episode)])
 
     def after_step(self, result: StepResult, slot_episode: np.ndarray,
@@ -233,7 +233,7 @@ def run_episodes(
     controller: Controller,
     episodes: int,
     seed: int,
-    jammer: JammerSetting | None | JammerSchedule,
+    jammer: JammerSetting | JammerSet | None | JammerSchedule,
     num_uavs: int | None = None,
     num_envs: int = 64,
     on_step: Callable[[VectorWorld], None] | None = None,
@@ -241,9 +241,10 @@ def run_episodes(
     record_measurements: bool = False,
 ) -> EpisodeResults:
     """Fly ``episodes`` episodes (episode k seeded by ``episode_seed(seed, k)``) under one
-    jammer setting, or under ``jammer(k)`` for episode k, ``num_envs`` at a time. Results
-    are independent of ``num_envs``."""
-    jammer_at = jammer if callable(jammer) else (lambda _episode: jammer)
+    jammer setting or a scenario's list of jammers, or under ``jammer(k)`` for episode k,
+    ``num_envs`` at a time. Results are independent of ``num_envs``."""
+    jammers = None if callable(jammer) else jammer_set(scenario, jammer)
+    jammer_at = jammer if callable(jammer) else (lambda _episode: jammers)
     world = VectorWorld(scenario, min(num_envs, episodes), num_uavs, record_measurements)
     book = EvaluationBook(world, episodes, seed, jammer_at, on_step, on_episode)
     fly_episodes(world, controller, range(episodes), book)

@@ -8,7 +8,7 @@ import sys
 
 from jamnav.arguments import jammer_command
 from shared import bus
-from shared.jammer_messages import JammerReply, jammer_numbers
+from shared.jammer_messages import JammerReply, describe_jammers, jammer_numbers
 from shared.topics import Topics, endpoint_from
 
 parser = argparse.ArgumentParser(prog="move_jammer", description=__doc__.splitlines()[0])
@@ -24,6 +24,6 @@ command = jammer_command(action, numbers, args.jammer)
 with bus.open_session("client", endpoint_from(args.connect)) as session:
     reply = bus.query(session, Topics(args.prefix).jammer_control, JammerReply, command)
 # The world applies a jammer it accepts between steps; the reply names the step.
-print(f"{'accepted' if reply.accepted else f'refused ({reply.reason})'}: jammer in force "
-      f"{reply.jammer} (episode {reply.episode}, step {reply.step})")
+print(f"{'accepted' if reply.accepted else f'refused ({reply.reason})'}: "
+      f"{describe_jammers(reply.jammers)} (episode {reply.episode}, step {reply.step})")
 sys.exit(0 if reply.accepted else 2)

@@ -23,7 +23,9 @@ topics = Topics(args.prefix)
 # The keys watched, each with its message and the line one of them makes.
 SHOWN = {
     topics.state: (WorldState, lambda s: f"world: episode {s.episode} step {s.step}, "
-                   f"{s.status.count('active')} flying, jammer {s.jammer_in_force}"),
+                   f"{s.status.count('active')} flying, jammers " + ("; ".join(
+                       f"{j.id} at ({j.x:g}, {j.y:g}){'' if j.on else ' off'}"
+                       for j in s.jammer_places) or "none")),
     topics.sinr_map: (SinrMap, lambda m: f"cloud: SINR map v{m.version} ({m.mode})"),
     topics.jammer_estimate: (JammerEstimate, lambda e: f"cloud: {describe_estimate(e)}"),
 }

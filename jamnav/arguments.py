@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from shared.jammer_messages import JAMMER_LIMITS, JammerCommand, JammerInfo
-from shared.scenario import Scenario, load_scenario, resolve_scenario_path
+from shared.scenario import MAX_JAMMERS, Scenario, load_scenario, resolve_scenario_path
 
 
 class UsageError(Exception):
@@ -180,15 +180,20 @@ def survey_map_argument(option: str, path: str, scenario) -> Path:
     return Path(path)
 
 
-def jammer_command(action: str, numbers: tuple | None = None, what: str = ""
-                   ) -> JammerCommand:
-    """The world's ``JammerCommand``: ``set`` at ``numbers`` (x, y, power_w, height_m or
-    None), ``off`` or ``show``. Numbers it would refuse are a UsageError with one line that
-    quotes ``what`` the user gave (the command line's X,Y,P[,H], the console's JSON)."""
-    if action != "set":
-        return JammerCommand(action=action)
+def jammer_command(action: str, numbers: tuple | None = None, what: str = "",
+                   jammer_id: int | None = None) -> JammerCommand:
+    """The world's ``JammerCommand``: ``set``, ``add`` or ``move`` (jammer ``jammer_id``) to
+    ``numbers`` (x, y, power_w or None for a move, height_m or None), ``remove`` or ``off``
+    (jammer ``jammer_id``, or every one), or ``show``. What it would refuse is a UsageError
+    with one line that quotes ``what`` the user gave (the command line's X,Y,P[,H], the
+    console's JSON)."""
+    if jammer_id is not None and not 0 <= jammer_id < MAX_JAMMERS:
+        raise UsageError(f"jammer {action} {jammer_id}: a jammer's id is 0 to {MAX_JAMMERS - 1}")
+    if numbers is None:
+        return JammerCommand(action=action, id=jammer_id)
     x, y, power, height = numbers
     try:
-        return JammerCommand(action="set", x=x, y=y, power_w=power, height_m=height)
+        return JammerCommand(action=action, id=jammer_id, x=x, y=y, power_w=power,
+                             height_m=height)
     except ValueError:
-        raise UsageError(f"jammer set {what}: {JAMMER_LIMITS}") from None
+        raise UsageError(f"jammer {action} {what}: {JAMMER_LIMITS}") from None

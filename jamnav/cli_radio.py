@@ -126,7 +126,7 @@ def cmd_map(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {args.out}: the map is written as PNG; name it *.png")
     output_path("--out", args.out)
     check_range("--resolution", args.resolution, 20, 2000)
-    share = save_coverage_map(scenario, RadioModel.jammer_of(scenario), out, args.resolution)
+    share = save_coverage_map(scenario, RadioModel.jammers_of(scenario), out, args.resolution)
     print(f"wrote {out} (covered {share:.1%} of the area)", file=sys.stderr)
     return 0
 

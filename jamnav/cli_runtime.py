@@ -1,5 +1,6 @@
 """The ``jamnav`` commands that work with a running system: ``console``, ``record``,
-``replay``, ``jammer {set,off,show}`` and ``status``; and ``router``, a router of one (what
+``replay``, ``jammer {set,add,move,remove,off,show}`` and ``status``; and ``router``, a
+router of one (what
 ``jamnav up`` starts, and what links the hosts of a system spread over several).
 
 Every command finds the running system through its router: ``--endpoint``, else
@@ -20,7 +21,7 @@ from pathlib import Path
 
 from jamnav.arguments import UsageError, check_range, jammer_command, new_recording
 from shared.process_status import mapper_summary
-from shared.scenario import ScenarioError, load_scenario
+from shared.scenario import MAX_JAMMERS, ScenarioError, load_scenario
 from shared.topics import (
     DEFAULT_ENDPOINT,
     ENDPOINT_ENV,
@@ -59,8 +60,9 @@ def cmd_jammer(args: argparse.Namespace) -> int:
     from shared import access, bus
     from shared.jammer_messages import JammerReply, jammer_numbers
 
-    numbers = jammer_numbers(args.jammer) if args.jammer_command == "set" else None
-    command = jammer_command(args.jammer_command, numbers, args.jammer if numbers else "")
+    action, place = args.jammer_command, getattr(args, "jammer", None)
+    numbers = None if place is None else jammer_numbers(place, placed_only=action == "move")
+    command = jammer_command(action, numbers, place or "", getattr(args, "id", None))
     topics = Topics(args.prefix)
     login = access.login_for(args.credentials, access.OPERATOR)
     with bus.open_session("client", endpoint_from(args.endpoint), 2000, login=login) as session:
@@ -334,14 +336,25 @@ def add_replay_command(commands) -> None:
 
 
 def add_jammer_command(commands) -> None:
-    jammer = commands.add_parser("jammer", help="move, switch off or show the running jammer")
+    jammer = commands.add_parser("jammer", help="place, move, remove or show the running jammers")
     jammer_commands = jammer.add_subparsers(dest="jammer_command", required=True)
-    jam_set = jammer_commands.add_parser("set", help="place the jammer (applied between steps)")
-    jam_set.add_argument("jammer", metavar="X,Y,P[,H]",
-                         help="position (m), nominal power (W) and height (m, default: the "
-                              "scenario's), as every command takes a jammer; e.g. -25,15,1")
-    jammer_commands.add_parser("off", help="switch the jammer off")
-    jammer_commands.add_parser("show", help="the jammer in force")
+    place_help = ("position (m), nominal power (W) and height (m, default: the scenario's), as "
+                  "every command takes a jammer; e.g. -25,15,1")
+    jam_set = jammer_commands.add_parser(
+        "set", help="one jammer in place of all (applied between steps)")
+    jam_set.add_argument("jammer", metavar="X,Y,P[,H]", help=place_help)
+    jam_add = jammer_commands.add_parser(
+        "add", help=f"one jammer more, up to {MAX_JAMMERS} (the reply gives its id)")
+    jam_add.add_argument("jammer", metavar="X,Y,P[,H]", help=place_help)
+    jam_move = jammer_commands.add_parser(
+        "move", help="put jammer ID at X,Y, standing still (power and height kept unless given)")
+    jam_move.add_argument("id", type=int, metavar="ID")
+    jam_move.add_argument("jammer", metavar="X,Y[,P[,H]]", help=place_help)
+    jam_remove = jammer_commands.add_parser("remove", help="switch jammer ID off for good")
+    jam_remove.add_argument("id", type=int, metavar="ID")
+    jam_off = jammer_commands.add_parser("off", help="switch every jammer off, or jammer ID")
+    jam_off.add_argument("id", type=int, metavar="ID", nargs="?")
+    jammer_commands.add_parser("show", help="the jammers in force")
     for sub in jammer_commands.choices.values():
         add_bus_arguments(sub)
         sub.set_defaults(handler=guarded(cmd_jammer))

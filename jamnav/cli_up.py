@@ -103,8 +103,7 @@ def _check_run_options(args: argparse.Namespace, scenario: Scenario, uavs: int
     """The fleet, the run's length and clock, the jammer and its swap, the networks and the
     online map's options, each checked before anything starts; the swap's target and the
     survey map the online map starts from."""
-    from shared.jammer_messages import JammerInfo
-    from world_sim.process import initial_jammer
+    from shared.jammer_messages import JammerInfo, initial_jammers
 
     check_range("--uavs", uavs, 1, MAX_UAVS)
     check_range("--episodes", args.episodes, 1)
@@ -115,7 +114,11 @@ def _check_run_options(args: argparse.Namespace, scenario: Scenario, uavs: int
     if args.rate is not None and not args.realtime:
         raise UsageError("--rate sets the pace of --realtime; a lockstep run goes as fast as "
                          "its agents (see --deadline)")
-    initial_jammer(scenario, args.jammer, args.no_jammer)
+    jammers = initial_jammers(scenario, args.jammer, None, args.no_jammer)
+    if args.map == "perfect" and any(not jammer.as_jammer(scenario).still for jammer in jammers):
+        raise UsageError(f"--map perfect serves the true map of still jammers, and a jammer of "
+                         f"scenario {scenario.name} moves or switches: fly --map online or "
+                         "outdated (jamnav eval --method perfect flies it in-process)")
     if args.swap_to is not None and args.swap_jammer_at is None:
         raise UsageError("--swap-to says where --swap-jammer-at moves the jammer: give both")
     swap_to = args.swap_to or DEFAULT_SWAP_TO

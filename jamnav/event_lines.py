@@ -5,7 +5,13 @@ from __future__ import annotations
 
 from typing import Any
 
-from shared.jammer_messages import JammerEstimate, describe_estimate
+from shared.jammer_messages import (
+    JammerEstimate,
+    JammerInfo,
+    describe_estimate,
+    describe_jammers,
+    recorded_one_jammer,
+)
 
 
 def describe_event(event: dict[str, Any]) -> str | None:
@@ -13,10 +19,11 @@ def describe_event(event: dict[str, Any]) -> str | None:
     and the end of the run, which the summary counts instead."""
     kind = event["type"]
     if kind == "jammer_changed":
-        jammer = event.get("jammer")
-        where = "switched off" if jammer is None else (
-            f"moved to ({jammer['x']:g}, {jammer['y']:g}), {jammer['power_w']:g} W")
-        return f"jammer {where} (episode {event.get('episode')}, step {event.get('step')})"
+        # A report written when a world had one jammer names it alone.
+        listed = recorded_one_jammer(event, "jammer", "jammers").get("jammers") or []
+        jammers = [JammerInfo.model_validate(jammer) for jammer in listed]
+        return (f"{describe_jammers(jammers)} (episode {event.get('episode')}, step "
+                f"{event.get('step')})")
     if kind == "change_detected":
         return (f"change detected: map v{event['version']} right on "
                 f"{event['accuracy']:.0%} of recent uploads")
@@ -35,3 +42,4 @@ def describe_event(event: dict[str, Any]) -> str | None:
     if kind == "retrain_failed":
         return f"retraining map v{event['version']} failed: {event['error']}"
     return None
+

@@ -13,8 +13,8 @@ import numpy as np
 
 from jamnav.event_lines import describe_event
 from shared.jammer_messages import JammerInfo
-from shared.process_status import ProcessStatus
 from shared.outcomes import FINAL_OUTCOMES
+from shared.process_status import ProcessStatus
 from shared.shipped import value_net_name
 
 if TYPE_CHECKING:  # the supervisor builds its report with this module
@@ -270,18 +270,17 @@ def save_trajectory_figures(report: dict[str, Any], supervisor: Supervisor) -> l
         swap = changes[0]
         before = [k for k in done if k < swap["episode"]]
         if before:
-            panels.append(("before_swap", before[-1], supervisor.initial_jammer))
-        jammer = changes[-1]["jammer"]
-        panels.append(("after_swap", done[-1],
-                       None if jammer is None else JammerInfo.model_validate(jammer)))
+            panels.append(("before_swap", before[-1], supervisor.initial_jammers))
+        panels.append(("after_swap", done[-1], [JammerInfo.model_validate(jammer)
+                                                 for jammer in changes[-1]["jammers"]]))
     else:
-        panels.append(("last_episode", done[-1], supervisor.initial_jammer))
+        panels.append(("last_episode", done[-1], supervisor.initial_jammers))
     written = []
-    for label, episode, jammer in panels:
+    for label, episode, jammers in panels:
         positions = np.array([p for p in supervisor.trajectories[episode] if p], dtype=float)
         out = Path(report["run_dir"]) / f"trajectories_{label}.png"
         save_trajectory_figure(supervisor.scenario, [(
-            f"episode {episode} ({label.replace('_', ' ')})", JammerInfo.params(jammer), positions,
+            f"episode {episode} ({label.replace('_', ' ')})", JammerInfo.params(jammers), positions,
             np.array(supervisor.destinations[episode], dtype=float),
             supervisor.outcomes[episode])], out, dpi=110)
         written.append(str(out))

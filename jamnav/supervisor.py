@@ -45,14 +45,19 @@ from jamnav.routers import (
 from jamnav.run_report import build_report, publish_report
 from shared import access, bus, tls
 from shared.events import decode_event
-from shared.jammer_messages import JammerCommand, JammerInfo, JammerReply
+from shared.jammer_messages import (
+    JammerCommand,
+    JammerInfo,
+    JammerReply,
+    initial_jammers,
+    jammer_arguments,
+)
 from shared.process_status import ProcessStatus, mapper_summary
+from shared.scenario import Scenario
 from shared.threads import one_blas_thread
+from shared.topics import Topics
 from shared.wire import MessageError, decode
 from shared.world_messages import WorldState
-from shared.scenario import Scenario
-from shared.topics import Topics
-from world_sim.process import initial_jammer
 
 ROOT = Path(__file__).resolve().parent.parent
 STOP_GRACE_S = 10.0
@@ -148,8 +153,8 @@ class Supervisor:
         self.first_step: float | None = None
         self.launched_at = time.monotonic()
         self.finished: dict[str, Any] | None = None
-        self.initial_jammer = initial_jammer(scenario, config.jammer, config.no_jammer)
-        self.jammer = self.initial_jammer
+        self.initial_jammers = initial_jammers(scenario, config.jammer, None, config.no_jammer)
+        self.jammers = self.initial_jammers
         self.swapped = False
         self.stopped_by = "end"
         self.world_status: ProcessStatus | None = None
@@ -182,9 +187,7 @@ class Supervisor:
             inherited = [arg for fd in self._handed_fds(child) for arg in ("--listen-fd", str(fd))]
             return python + ["jamnav.cli", "console", *common, "--web", c.web.text, *token,
                              *inherited]
-        jammer = ["--no-jammer"] if self.jammer is None else [
-            "--jammer", f"{self.jammer.x!r},{self.jammer.y!r},{self.jammer.power_w!r},"
-                        f"{self.jammer.height_m!r}"]
+        jammer = jammer_arguments(self.jammers)
         if child.role == "cloud":
             argv = python + ["cloud_service.process", *common, "--map", c.map,
                              "--run-dir", str(c.run_dir), *jammer]
@@ -202,7 +205,8 @@ class Supervisor:
         if child.role == "agent":
             outbox = ["--outbox-dir", str(c.run_dir / OUTBOX_DIR)] if c.durable_outboxes else []
             return python + ["uav_agent.process", *common, "--uav", str(child.ident), *outbox]
-        # A restarted world carries on after the last finished episode, with the jammer in force.
+        # A restarted world carries on after the last finished episode, with the jammers in
+        # force.
         done = len(self.outcomes)
         argv = python + ["world_sim.process", *common, "--uavs", str(c.uavs), "--seed",
                          str(c.seed), "--clock", c.clock, "--rate", str(c.rate), "--deadline",
@@ -359,7 +363,7 @@ class Supervisor:
             self.finished = record
             return
         if event.type == "jammer_changed":
-            self.jammer = event.jammer
+            self.jammers = tuple(event.jammers)
         if (text := describe_event(record)) is not None:
             self._say(text)
 

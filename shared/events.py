@@ -3,13 +3,13 @@ model per type under one discriminated union, and their decoding."""
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import Field, TypeAdapter
+from pydantic import Field, TypeAdapter, model_validator
 
-from shared.jammer_messages import JammerEstimate, JammerInfo
+from shared.jammer_messages import JammerEstimate, JammerInfo, recorded_one_jammer
 from shared.outcomes import Outcome
-from shared.scenario import MAX_UAVS
+from shared.scenario import MAX_JAMMERS, MAX_UAVS
 from shared.wire import (
     Accuracy,
     Count,
@@ -34,10 +34,17 @@ class _Event(Message):
 
 
 class JammerChanged(_Event):
+    """The world's jammers changed (a command, a swap): those in force from ``step`` on."""
+
     type: Literal["jammer_changed"] = "jammer_changed"
-    jammer: JammerInfo | None
+    jammers: list[JammerInfo] = Field(max_length=MAX_JAMMERS)
     episode: Count
     step: Count
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_jammer_recorded(cls, data: Any) -> Any:
+        return recorded_one_jammer(data, "jammer", "jammers")
 
 
 class ChangeDetected(_Event):

@@ -17,7 +17,7 @@ from matplotlib.colors import ListedColormap  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
-from shared.radio import JammerParams, RadioModel  # noqa: E402
+from shared.radio import Jammers, RadioModel, as_jammers  # noqa: E402
 from shared.scenario import Scenario  # noqa: E402
 
 _COVERAGE_COLOURS = ListedColormap(["white", "#f7ec8f"])
@@ -27,18 +27,23 @@ UAV_COLOURS = ("#0072B2", "#CC79A7", "#000000", "#56B4E9", "#882255", "#332288",
                "#777777")
 
 
-def jammer_title(jammer: JammerParams | None) -> str:
-    if jammer is None:
+def jammer_title(jammers: Jammers) -> str:
+    jammers = as_jammers(jammers)
+    if not jammers:
         return "No jammer"
+    if len(jammers) > 1:
+        return f"{len(jammers)} jammers, $P_J$ = " + ", ".join(
+            f"{jammer.power_w:g}" for jammer in jammers) + " W"
+    jammer = jammers[0]
     return f"Jammer at ({jammer.x:g}, {jammer.y:g}), $P_J$ = {jammer.power_w:g} W"
 
 
 def draw_coverage(
-    ax, scenario: Scenario, jammer: JammerParams | None, resolution: int = 301
+    ax, scenario: Scenario, jammers: Jammers, resolution: int = 301
 ) -> float:
     """Draw the coverage map on ``ax``; returns the covered share of the area."""
     radio = RadioModel(scenario)
-    xs, ys, reading = radio.grid(scenario, resolution, jammer)
+    xs, ys, reading = radio.grid(scenario, resolution, jammers)
     covered = reading.level > 0
     area = scenario.area
     ax.imshow(
@@ -52,24 +57,24 @@ def draw_coverage(
     )
     gbs = radio.gbs_xy
     ax.plot(gbs[:, 0], gbs[:, 1], "^", color=GBS_COLOUR, markersize=9, label="GBS")
-    if jammer is not None:
+    for index, jammer in enumerate(as_jammers(jammers)):
         ax.plot([jammer.x], [jammer.y], "*", color=JAMMER_COLOUR, markersize=16, mec="black",
-                mew=0.8, label="jammer")
+                mew=0.8, label="jammer" if index == 0 else None)
     ax.set_xlim(area.x_min, area.x_max)
     ax.set_ylim(area.y_min, area.y_max)
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     share = float(covered.mean())
-    ax.set_title(f"{jammer_title(jammer)} — covered {share:.0%}", fontsize=10)
+    ax.set_title(f"{jammer_title(jammers)} — covered {share:.0%}", fontsize=10)
     return share
 
 
 def save_coverage_map(
-    scenario: Scenario, jammer: JammerParams | None, out: Path, resolution: int = 301
+    scenario: Scenario, jammers: Jammers, out: Path, resolution: int = 301
 ) -> float:
     fig, ax = plt.subplots(figsize=(5.2, 5.2))
-    share = draw_coverage(ax, scenario, jammer, resolution)
+    share = draw_coverage(ax, scenario, jammers, resolution)
     ax.legend(loc="upper right", fontsize=8, framealpha=0.9)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -128,16 +133,16 @@ def draw_trajectories(ax, positions: np.ndarray, destinations: np.ndarray,
 
 def save_trajectory_figure(
     scenario: Scenario,
-    panels: list[tuple[str, JammerParams | None, np.ndarray, np.ndarray, list[str]]],
+    panels: list[tuple[str, Jammers, np.ndarray, np.ndarray, list[str]]],
     out: Path,
     dpi: int = 100,
 ) -> None:
-    """Trajectories over the coverage map of each panel's jammer (the paper's Fig. 3).
-    ``panels``: (title, jammer, positions (T, J, 2), destinations (J, 2), outcomes)."""
+    """Trajectories over the coverage map of each panel's jammers (the paper's Fig. 3).
+    ``panels``: (title, jammers, positions (T, J, 2), destinations (J, 2), outcomes)."""
     fig, axes = plt.subplots(1, len(panels), figsize=(4.8 * len(panels), 6.0), squeeze=False)
-    for ax, (title, jammer, positions, destinations, outcomes) in zip(axes[0], panels,
-                                                                      strict=True):
-        draw_coverage(ax, scenario, jammer, resolution=201)
+    for ax, (title, jammers, positions, destinations, outcomes) in zip(axes[0], panels,
+                                                                       strict=True):
+        draw_coverage(ax, scenario, jammers, resolution=201)
         draw_trajectories(ax, positions, destinations, outcomes)
         if title:
             ax.set_title(f"{title}\n{ax.get_title()}", fontsize=9)

@@ -196,6 +196,9 @@ class Reactive(_Strict):
     radius_m: Positive
 
 
+OnOffSchedule = Annotated[DutyCycle | Reactive, Field(discriminator="kind")]
+
+
 class Jammer(_Strict):
     """A jammer as configured; ``power_w`` is its nominal (label) power, ``x, y`` where it
     stands or, with a path, where its drive starts. Without a schedule it is always on."""
@@ -207,7 +210,7 @@ class Jammer(_Strict):
     height_m: JammerHeight
     efficiency_db: Annotated[float, Field(le=0, allow_inf_nan=False)]
     path: JammerPath | None = None
-    schedule: Annotated[DutyCycle | Reactive, Field(discriminator="kind")] | None = None
+    schedule: OnOffSchedule | None = None
 
     @property
     def still(self) -> bool:

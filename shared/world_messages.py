@@ -4,14 +4,14 @@ lockstep clock), the fleet state it publishes, and the UAV it hands an agent tha
 
 from __future__ import annotations
 
-from typing import ClassVar, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
 
-from shared.jammer_messages import JammerInfo
+from shared.jammer_messages import JammerInfo, JammerPlace, recorded_one_jammer
 from shared.observation import Observation
-from shared.scenario import MAX_UAVS
+from shared.scenario import MAX_JAMMERS, MAX_UAVS
 from shared.wire import (
     XY,
     Coordinate,
@@ -202,11 +202,18 @@ class WorldState(Message):
     status: list[StatusLabel] = Field(max_length=MAX_UAVS)
     # Where each UAV is headed this episode (empty from a world that does not say).
     destination: list[XY] = Field(default_factory=list, max_length=MAX_UAVS)
-    # The jammer in force after the step (None: none), so that a console that joins late, or
-    # a replay of a recording begun mid-run, knows it from any state. ``jammer_known`` is
-    # False from a world that does not say (recordings made before it did).
-    jammer_in_force: JammerInfo | None = None
+    # The jammers in force after the step, so that a console that joins late, or a replay of
+    # a recording begun mid-run, knows them from any state, and where each is then (a jammer
+    # on a path moves, a scheduled one switches). ``jammer_known`` is False from a world that
+    # does not say (recordings made before it did).
+    jammers_in_force: list[JammerInfo] = Field(default_factory=list, max_length=MAX_JAMMERS)
+    jammer_places: list[JammerPlace] = Field(default_factory=list, max_length=MAX_JAMMERS)
     jammer_known: bool = False
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_jammer_recorded(cls, data: Any) -> Any:
+        return recorded_one_jammer(data, "jammer_in_force", "jammers_in_force")
 
 
 class JoinReply(Message):

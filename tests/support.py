@@ -108,10 +108,11 @@ def running(scenario, tmp_path, *, mode: str, uavs: int, jammer: JammerInfo | No
                 pass
 
         monitor.declare_subscriber(topics.event("*"), on_event)
-        cloud = CloudService(client(), topics, scenario, mode, tmp_path, log, jammer=jammer,
+        jammers = () if jammer is None else (jammer,)
+        cloud = CloudService(client(), topics, scenario, mode, tmp_path, log, jammers=jammers,
                              retrain=retrain)
         world = WorldService(client(), topics, scenario,
-                             WorldConfig(uavs=uavs, seed=seed, episodes=episodes), jammer, log)
+                             WorldConfig(uavs=uavs, seed=seed, episodes=episodes), jammers, log)
         agents = [AgentService(client(), topics, scenario, uav, log) for uav in range(uavs)]
 
         def fly(agent: AgentService) -> None:

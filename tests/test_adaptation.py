@@ -209,7 +209,8 @@ def test_the_report_shows_a_run_of_refinements_as_its_first_and_last_map():
 
     published = [{"type": "sinr_weights_published", "version": v, "accuracy": 0.9}
                  for v in range(1, 5)]
-    events = [{"type": "jammer_changed", "jammer": {"x": -25.0, "y": 15.0, "power_w": 1.0},
+    events = [{"type": "jammer_changed",
+               "jammers": [{"x": -25.0, "y": 15.0, "power_w": 1.0, "height_m": 30.0}],
                "episode": 3, "step": 40},
               {"type": "change_detected", "version": 0, "accuracy": 0.8123456789}]
     for version, x in ((1, 20.0), (2, 22.0), (3, 23.5), (4, 24.0)):

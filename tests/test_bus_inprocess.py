@@ -55,11 +55,11 @@ def test_jammer_control_replies_and_invalid_messages_are_refused_and_counted(sce
                  episodes=None) as system:
         system.wait_for("uav_outcomes", 60)
         shown = system.jammer(JammerCommand(action="show"))
-        assert shown.accepted and shown.jammer == jammer
+        assert shown.accepted and shown.jammers == [jammer]
 
         far = system.jammer(JammerCommand(action="set", x=500.0, y=0.0, power_w=1.0))
         assert not far.accepted and "outside the area" in far.reason
-        assert far.jammer == jammer
+        assert far.jammers == [jammer]
         nan = system.jammer(msgpack.packb({"action": "set", "x": 0.0, "y": 0.0,
                                            "power_w": float("nan")}))
         assert not nan.accepted and "finite" in nan.reason
@@ -70,13 +70,13 @@ def test_jammer_control_replies_and_invalid_messages_are_refused_and_counted(sce
 
         seen = len(system.events)
         moved = system.jammer(JammerCommand(action="set", x=25.0, y=-10.0, power_w=0.5))
-        assert moved.accepted and moved.jammer.power_w == 0.5
+        assert moved.accepted and [j.power_w for j in moved.jammers] == [0.5]
         changed = system.wait_for("jammer_changed", 10, after=seen)
-        assert changed.jammer == moved.jammer and changed.jammer.height_m == 30.0
+        assert changed.jammers == moved.jammers and changed.jammers[0].height_m == 30.0
         off = system.jammer(JammerCommand(action="off"))
-        assert off.accepted and off.jammer is None
+        assert off.accepted and off.jammers == []
         wait_until(lambda: len(system.of_type("jammer_changed")) == 2, 10)
-        assert system.of_type("jammer_changed")[-1].jammer is None
+        assert system.of_type("jammer_changed")[-1].jammers == []
         # Switching off what is off, or setting what is set, is accepted and changes nothing.
         assert system.jammer(JammerCommand(action="off")).accepted
         assert system.jammer(JammerCommand(action="set", x=1.0, y=1.0, power_w=0.0)).accepted

@@ -92,11 +92,22 @@ def test_a_running_system_is_controlled_restarts_a_dead_agent_and_stops_on_ctrl_
                             "--endpoint", endpoint)
     assert code == 2 and err.count("\n") == 1
     code, out, _ = run_json(capsys, "jammer", "set", "-25,-10,0.5", "--endpoint", endpoint)
-    assert code == 0 and json.loads(out)["jammer"]["x"] == -25.0
+    assert code == 0 and [j["x"] for j in json.loads(out)["jammers"]] == [-25.0]
     code, out, _ = run_json(capsys, "jammer", "show", "--endpoint", endpoint)
-    assert code == 0 and json.loads(out)["jammer"]["power_w"] == 0.5
+    assert code == 0 and json.loads(out)["jammers"][0]["power_w"] == 0.5
     wait_until(lambda: any(p["role"] == "cloud" and p["sinr_version"] == 2 for p in status()),
                30, "the true map of the new jammer")
+    # A second jammer, moved, then removed; a jammer that is not there is refused in a line.
+    code, out, _ = run_json(capsys, "jammer", "add", "20,20,1", "--endpoint", endpoint)
+    assert code == 0 and [j["id"] for j in json.loads(out)["jammers"]] == [0, 1]
+    code, out, _ = run_json(capsys, "jammer", "move", "1", "10,-5", "--endpoint", endpoint)
+    assert code == 0 and json.loads(out)["jammers"][1] == {
+        "id": 1, "x": 10.0, "y": -5.0, "power_w": 1.0, "height_m": 30.0, "path": None,
+        "schedule": None}
+    code, _, err = run_json(capsys, "jammer", "remove", "3", "--endpoint", endpoint)
+    assert code == 2 and "no jammer 3 (in force: 0, 1)" in err and err.count("\n") == 1
+    code, out, _ = run_json(capsys, "jammer", "remove", "1", "--endpoint", endpoint)
+    assert code == 0 and [j["id"] for j in json.loads(out)["jammers"]] == [0]
     code, out, _ = run_json(capsys, "status", "--endpoint", endpoint)
     assert code == 0 and "world-0" in out and "agent-1" in out
 
@@ -109,7 +120,8 @@ def test_a_running_system_is_controlled_restarts_a_dead_agent_and_stops_on_ctrl_
     assert first in [p["pid"] for p in report["processes"]]
     assert all(gone(p["pid"]) for p in report["processes"])
     changes = [e for e in report["events"] if e["type"] == "jammer_changed"]
-    assert changes and changes[-1]["jammer"]["x"] == -25.0
+    assert [[j["x"] for j in change["jammers"]] for change in changes[-3:]] == [
+        [-25.0, 20.0], [-25.0, 10.0], [-25.0]]
     for figure in report["figures"]:
         assert Path(figure).stat().st_size > 10_000
     code, _, err = run_json(capsys, "status", "--endpoint", endpoint)

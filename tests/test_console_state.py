@@ -19,8 +19,8 @@ from jamnav.console.state import TIMELINE_IN_FRAME, ConsoleState, jammer_request
 from planning.networks import sha256
 from shared.cloud_messages import RasterGrid, SinrMap
 from shared.events import ChangeDetected, JammerChanged, RunFinished, UavOutcomes
-from shared.jammer_messages import JammerEstimate, JammerInfo
-from shared.radio import RadioModel
+from shared.jammer_messages import JammerEstimate, JammerInfo, JammerPlace
+from shared.radio import JammerParams, RadioModel
 from shared.shipped import SINR_MAP_NO_JAMMER
 from shared.wire import decode, encode
 from shared.world_messages import WorldState
@@ -74,34 +74,51 @@ def test_events_count_outcomes_once_follow_the_jammer_and_fill_the_timeline():
                                outcomes=["timeout", "collision", "collision"]))
     assert not state.jammer_known
     state.on_event(JammerChanged(t=T + 1, source="world", episode=2, step=7,
-                                 jammer=JammerInfo(x=25, y=-10, power_w=1, height_m=30)))
+                                 jammers=[JammerInfo(x=25, y=-10, power_w=1, height_m=30)]))
     state.on_event(ChangeDetected(t=T + 2, source="cloud", version=3, accuracy=0.8))
     state.on_event(RunFinished(t=T + 3, source="world", episodes=2, steps=80, seconds=4,
                                steps_per_second=20, missed_deadlines=0))
     view = state.snapshot()
     assert view["counters"] == {"episodes": 2, "success": 2, "disconnection": 1,
                                 "collision": 2, "timeout": 1}
-    assert view["jammer"] == {"x": 25.0, "y": -10.0, "power_w": 1.0}
+    assert view["jammers"] == [{"id": 0, "x": 25.0, "y": -10.0, "power_w": 1.0, "on": True,
+                                "path": None}]
     assert view["finished"] is True
     assert [(e["seq"], e["kind"], e["t"], e["text"]) for e in view["timeline"]] == [
         (1, "jammer_changed", T + 1, "jammer moved to (25, -10), 1 W (episode 2, step 7)"),
         (2, "change_detected", T + 2, "change detected: map v3 right on 80% of recent uploads")]
-    state.on_event(JammerChanged(t=T + 4, source="world", episode=3, step=0, jammer=None))
-    assert state.snapshot()["jammer"] is None and state.jammer_known
+    state.on_event(JammerChanged(t=T + 4, source="world", episode=3, step=0, jammers=[]))
+    assert state.snapshot()["jammers"] == [] and state.jammer_known
 
 
-def test_the_world_state_says_which_jammer_is_in_force_and_an_older_one_says_nothing():
+def test_the_world_state_says_which_jammers_are_in_force_and_an_older_one_says_nothing():
     state = ConsoleState()
     state.on_world_state(world_state(0, 1, [(0.0, 0.0)]))  # a recording from before it said
     assert not state.jammer_known
-    jammer = JammerInfo(x=25, y=-10, power_w=1, height_m=30)
-    said = world_state(0, 2, [(0.0, 0.0)]).model_copy(
-        update={"jammer_in_force": jammer, "jammer_known": True})
+    still = JammerInfo(x=25, y=-10, power_w=1, height_m=30)
+    convoy = JammerInfo(id=2, x=-40, y=0, power_w=0.5, height_m=20,
+                        path={"waypoints": [(40.0, 0.0)], "speed_mps": 3.0})
+    said = world_state(0, 2, [(0.0, 0.0)]).model_copy(update={
+        "jammers_in_force": [still, convoy], "jammer_known": True,
+        "jammer_places": [JammerPlace(id=0, x=25, y=-10, on=False),
+                          JammerPlace(id=2, x=-34, y=0, on=True)]})
     state.on_world_state(decode(WorldState, encode(said)))  # as it comes over the wire
-    assert state.current_jammer() == (True, jammer)
+    # The true map is drawn under the jammers transmitting, where they are now.
+    assert state.current_jammers() == (True, (JammerParams(-34.0, 0.0, 0.5, 20.0),))
+    assert state.snapshot()["jammers"][1] == {"id": 2, "x": -34.0, "y": 0.0, "power_w": 0.5,
+                                              "on": True, "path": [[-40.0, 0.0], [40.0, 0.0]]}
     state.on_world_state(world_state(0, 3, [(0.0, 0.0)]).model_copy(
         update={"jammer_known": True}))
-    assert state.current_jammer() == (True, None)
+    assert state.current_jammers() == (True, ())
+
+
+def test_a_state_recorded_with_one_jammer_replays_as_a_list():
+    recorded = world_state(0, 2, [(0.0, 0.0)]).model_dump(mode="json", exclude={
+        "jammers_in_force", "jammer_places"})
+    one = {"x": 25.0, "y": -10.0, "power_w": 1.0, "height_m": 30.0}
+    state = WorldState.model_validate({**recorded, "jammer_in_force": one, "jammer_known": True})
+    assert [jammer.model_dump(include=set(one)) for jammer in state.jammers_in_force] == [one]
+    assert WorldState.model_validate({**recorded, "jammer_in_force": None}).jammers_in_force == []
 
 
 def test_the_frame_keeps_the_newest_timeline_entries_and_is_encoded_once_per_change():
@@ -141,11 +158,17 @@ def test_a_map_no_newer_than_the_one_in_service_is_ignored():
     assert state.map_payload("true") is None
 
 
+def command(action, id=None, x=None, y=None, power_w=None) -> dict:
+    return {"action": action, "id": id, "x": x, "y": y, "power_w": power_w, "height_m": None}
+
+
 @pytest.mark.parametrize(("body", "expected"), [
-    ({"x": -25, "y": 15.5, "power_w": 1}, {"action": "set", "x": -25.0, "y": 15.5,
-                                           "power_w": 1.0, "height_m": None}),
-    ({"off": True}, {"action": "off", "x": None, "y": None, "power_w": None,
-                     "height_m": None}),
+    ({"x": -25, "y": 15.5, "power_w": 1}, command("set", x=-25.0, y=15.5, power_w=1.0)),
+    ({"x": -25, "y": 15.5, "power_w": 1, "add": True},
+     command("add", x=-25.0, y=15.5, power_w=1.0)),
+    ({"id": 2, "x": 3, "y": -4}, command("move", id=2, x=3.0, y=-4.0)),
+    ({"remove": 1}, command("remove", id=1)),
+    ({"off": True}, command("off")),
 ])
 def test_a_request_body_becomes_the_worlds_command(body, expected):
     assert jammer_request(body).model_dump() == expected
@@ -153,15 +176,19 @@ def test_a_request_body_becomes_the_worlds_command(body, expected):
 
 @pytest.mark.parametrize(("body", "reason"), [
     ([1, 2, 3], "expected a JSON object"),
-    ({"off": False}, "takes nothing else"),
-    ({"off": True, "x": 1}, "takes nothing else"),
-    ({"x": 1, "y": 2}, "expected exactly x, y and power_w"),
-    ({"x": 1, "y": 2, "power_w": 1, "height_m": 5}, "expected exactly x, y and power_w"),
+    ({"off": False}, "expected one of"),
+    ({"off": True, "x": 1}, "expected one of"),
+    ({"x": 1, "y": 2}, "expected one of"),
+    ({"x": 1, "y": 2, "power_w": 1, "height_m": 5}, "expected one of"),
+    ({"x": 1, "y": 2, "power_w": 1, "add": False}, '"add" is true or left out'),
     ({"x": "1", "y": 2, "power_w": 1}, "must be numbers"),
     ({"x": True, "y": 2, "power_w": 1}, "must be numbers"),
     ({"x": 1, "y": 2, "power_w": -1}, "power and height >= 0"),
     ({"x": 1, "y": 2, "power_w": 1001}, "power at most 1000 W"),
     ({"x": float("inf"), "y": 2, "power_w": 1}, "must be finite"),
+    ({"remove": "1"}, "a jammer's id is a whole number"),
+    ({"remove": 7}, "a jammer's id is 0 to 3"),
+    ({"id": True, "x": 1, "y": 2}, "a jammer's id is a whole number"),
 ])
 def test_a_bad_request_body_is_refused_with_one_line(body, reason):
     with pytest.raises(ValueError, match=reason) as refused:
@@ -178,8 +205,8 @@ def test_the_maps_are_the_worlds_truth_and_what_the_cloud_serves(scenario):
     radio = RadioModel(scenario)
     nearest_station = radio.evaluate(np.array(scenario.gbs.positions)).level
     assert (nearest_station > 0).all()
-    free = maps.true(None)
-    jammed = maps.true(JammerInfo(x=0, y=0, power_w=20, height_m=30))
+    free = maps.true(())
+    jammed = maps.true((JammerParams(0.0, 0.0, 20.0, 30.0),))
     centre = (np.abs(x) < 5) & (np.abs(y) < 5)
     assert (jammed <= free).all() and (jammed[centre] == 0).all()
     assert (free > 0).mean() > 0.8

@@ -35,7 +35,7 @@ def test_watch_move_the_jammer_and_read_the_recording_of_a_live_system(superviso
                                        check=False), 90, "the system's first steps")
     steps = [line for line in lines if line.startswith("world: episode ")]
     assert len(lines) == 5 and all(line.startswith(("world: ", "cloud: ")) for line in lines)
-    assert steps and "jammer x=0.0 y=0.0 power_w=1.0" in steps[-1]  # the scenario's
+    assert steps and steps[-1].endswith("jammers 0 at (0, 0)")  # the scenario's
 
     # Watching while the jammer moves: 300 lines are 15 s of the world's steps at 20 a second.
     watch = subprocess.Popen([sys.executable, str(ROOT / "examples" / "watch.py"), "--connect",
@@ -44,7 +44,7 @@ def test_watch_move_the_jammer_and_read_the_recording_of_a_live_system(superviso
     try:
         assert watch.stdout.readline().startswith("world: ")  # it listens
         moved = example("move_jammer", "--connect", endpoint, "25,-10,1")
-        assert len(moved) == 1 and moved[0].startswith("accepted: jammer in force x=25.0 y=-10.0")
+        assert len(moved) == 1 and moved[0].startswith("accepted: jammer moved to (25, -10), 1 W")
         refused = subprocess.run([sys.executable, str(ROOT / "examples" / "move_jammer.py"),
                                   "--connect", endpoint, "500,0,1"], capture_output=True,
                                  text=True, timeout=60)
@@ -56,8 +56,8 @@ def test_watch_move_the_jammer_and_read_the_recording_of_a_live_system(superviso
     assert watch.returncode == 0
     # The world flies on the new jammer, and the cloud puts the true map of it.
     assert "cloud: SINR map v2 (perfect)" in watched.splitlines()
-    assert "jammer x=25.0 y=-10.0 power_w=1.0" in [line for line in watched.splitlines()
-                                                    if line.startswith("world: ")][-1]
+    assert [line for line in watched.splitlines()
+            if line.startswith("world: ")][-1].endswith("jammers 0 at (25, -10)")
 
     system.send_signal(signal.SIGINT)  # Ctrl-C: the run ends, the recording is closed
     out, err = drained.wait(60)

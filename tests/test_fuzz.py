@@ -124,7 +124,7 @@ def templates(scenario) -> dict[str, dict]:
         "sinr_map": SinrMap(version=5, sha256=sha256(weights), data=weights, mode="online"),
         "event": UavOutcomes(t=time.time(), source="world", episode=9, seed=1, steps=5,
                              outcomes=["success"] * UAVS),
-        "jammer_event": JammerChanged(t=time.time(), source="world", jammer=None, episode=0,
+        "jammer_event": JammerChanged(t=time.time(), source="world", jammers=[], episode=0,
                                       step=0),
         "upload": MeasurementUpload(uav=0, measurements=[Measurement(
             id="fuzz-0", source="uav-0", step=1, time=time.time(), features=features,

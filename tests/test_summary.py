@@ -53,7 +53,8 @@ def test_rates_are_rounded_and_a_swap_splits_success_by_hand():
                 3: ["success"] * 4}
     events = [{"type": "uav_outcomes", "episode": 0},
               {"type": "jammer_changed", "episode": 2, "step": 7,
-               "jammer": {"x": 25.0, "y": -10.0, "power_w": 1.0}},
+               "jammers": [{"x": 25.0, "y": -10.0, "power_w": 1.0, "height_m": 30.0}]},
+              # as a report written when a world had one jammer names it
               {"type": "jammer_changed", "episode": 3, "step": 1, "jammer": None}]
     swap = swap_rates(events, outcomes)
     # Before: episodes 0 and 1, 7 of 8 UAVs; from episode 2 on: 5 of 8.

@@ -11,7 +11,8 @@ episode it publishes the UAV outcomes. Two clocks:
 With ``cloud_clock`` (lockstep, online map) the cloud is part of the clock: after each step the
 world hands every UAV's agent its reports (``MeasurementRound``), waits until the cloud has
 taken the round (``RoundClosed``), and names the map in service in each observation.
-With ``swap_every`` the jammer moves to a fresh random setting every K episodes, the ones
+The jammers in force follow the operator's commands (``world_sim.jammer_desk``); with
+``swap_every`` one jammer moves to a fresh random setting every K episodes, the ones
 ``jamnav eval --swap-every K`` flies (``world_sim.jammers``).
 
 Either way a UAV without a fresh action keeps its last velocity, and the miss is counted.
@@ -33,14 +34,18 @@ import zenoh
 
 from shared import access, bus
 from shared.events import JammerChanged, RunFinished, UavOutcomes, outcome_labels
-from shared.jammer_messages import JammerCommand, JammerInfo, JammerReply
+from shared.jammer_messages import (
+    JammerInfo,
+    JammerPlace,
+    JammersInForce,
+    describe_jammers,
+    initial_jammers,
+)
 from shared.observation import Observation, decision_reach, decision_relevant
-from shared.paper import JammerSetting
 from shared.process_status import ProcessStatus
-from shared.radio import RadioModel
-from shared.scenario import MAX_UAVS, Scenario, load_scenario
+from shared.scenario import MAX_UAVS, Jammer, Scenario, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
-from shared.wire import MessageError, decode, encode
+from shared.wire import encode
 from shared.world_messages import (
     Action,
     AgentObservation,
@@ -53,6 +58,7 @@ from shared.world_messages import (
 )
 from world_sim.cloud_rounds import CloudRounds
 from world_sim.core import VectorWorld, episode_seed, fleet_observation
+from world_sim.jammer_desk import JammerDesk
 from world_sim.jammers import swapping_jammers
 
 ROLE = "world"
@@ -155,79 +161,6 @@ class Mailbox:
                 self._cond.wait(min(remaining, 0.1))
 
 
-class JammerDesk:
-    """Jammer commands come in on zenoh's query thread; they are checked and answered there,
-    and the main loop applies the accepted one between two steps."""
-
-    def __init__(self, scenario: Scenario, jammer: JammerInfo | None, dropped: bus.Dropped,
-                 key: str):
-        self.area = scenario.area
-        self.default_height = scenario.jammer.height_m
-        self.dropped = dropped
-        self.key = key
-        self._lock = threading.Lock()
-        self._current = jammer
-        self._pending: list[JammerInfo | None] = []  # accepted, in order; None = off
-        self.episode = 0
-        self.step = 0
-
-    def current(self) -> JammerInfo | None:
-        """The jammer once every accepted command is applied."""
-        with self._lock:
-            return self._accepted_last()
-
-    def _accepted_last(self) -> JammerInfo | None:
-        return self._pending[-1] if self._pending else self._current
-
-    def handle(self, query: zenoh.Query) -> None:
-        payload = query.payload
-        try:
-            command = (JammerCommand(action="show") if payload is None
-                       else decode(JammerCommand, payload.to_bytes()))
-        except MessageError as exc:
-            self.dropped.add(self.key, str(exc))
-            query.reply(self.key, encode(self._reply(False, str(exc))))
-            return
-        reason = None
-        if command.action == "set" and not self.area.contains(command.x, command.y):
-            a = self.area
-            reason = (f"position ({command.x:g}, {command.y:g}) outside the area "
-                      f"[{a.x_min:g}, {a.x_max:g}] x [{a.y_min:g}, {a.y_max:g}]")
-        elif command.action != "show":
-            jammer = None
-            if command.action == "set" and command.power_w > 0:
-                height = self.default_height if command.height_m is None else command.height_m
-                jammer = JammerInfo(x=command.x, y=command.y, power_w=command.power_w,
-                                    height_m=height)
-            with self._lock:
-                if jammer != self._accepted_last():  # a command that changes nothing says nothing
-                    self._pending.append(jammer)
-        query.reply(self.key, encode(self._reply(reason is None, reason)))
-
-    def _reply(self, accepted: bool, reason: str | None) -> JammerReply:
-        return JammerReply(accepted=accepted, reason=reason, jammer=self.current(),
-                           episode=self.episode, step=self.step)
-
-    def in_force(self) -> JammerInfo | None:
-        """The jammer the world flies with now (accepted commands wait for the next step)."""
-        with self._lock:
-            return self._current
-
-    def schedule(self, jammer: JammerInfo | None) -> None:
-        """The run's jammer schedule moves the jammer, as a command would."""
-        with self._lock:
-            if jammer != self._accepted_last():
-                self._pending.append(jammer)
-
-    def take(self) -> list[JammerInfo | None]:
-        """The commands accepted since the last call, in order."""
-        with self._lock:
-            taken, self._pending = self._pending, []
-            if taken:
-                self._current = taken[-1]
-            return taken
-
-
 def observation_sent(world: VectorWorld) -> tuple[Observation, np.ndarray]:
     """What every UAV of the world's one environment observes now (``fleet_observation``,
     as the in-process evaluation sees it), and which of those others (J, M) its agent is
@@ -244,16 +177,16 @@ class WorldService:
     publish the fleet state, events and outcomes."""
 
     def __init__(self, session: zenoh.Session, topics: Topics, scenario: Scenario,
-                 config: WorldConfig, jammer: JammerInfo | None, log: logging.Logger):
+                 config: WorldConfig, jammers: JammersInForce, log: logging.Logger):
         self.session, self.topics, self.config, self.log = session, topics, config, log
         self.scenario = scenario
         self.world = VectorWorld(scenario, 1, config.uavs, record_measurements=True)
-        self.world.set_jammer(slice(None), JammerInfo.params(jammer))
+        self.world.set_jammers(slice(None), self._world_jammers(jammers))
         self.dropped = bus.Dropped(log)
         self.mailbox = Mailbox(config.uavs)
-        self.desk = JammerDesk(scenario, jammer, self.dropped, topics.jammer_control)
-        first = None if jammer is None else JammerSetting(jammer.x, jammer.y, jammer.power_w)
-        self.jammer_at = swapping_jammers(scenario, first, config.swap_every, config.seed)
+        self.desk = JammerDesk(scenario, jammers, self.dropped, topics.jammer_control)
+        self.jammer_at = swapping_jammers(scenario, self._world_jammers(jammers),
+                                          config.swap_every, config.seed)
         self.flown_s = 0.0  # the run's seconds of flight: the reports' clock
         # Round numbers go on from the wall clock's milliseconds: a restarted world's rounds
         # are then never taken for ones the cloud closed before.
@@ -304,7 +237,6 @@ class WorldService:
             query.reply(self.topics.join, encode(JoinReply(uav=uav)))
 
     def status(self) -> ProcessStatus:
-        jammer = self.desk.current()
         return ProcessStatus(
             role=ROLE, ident="0", pid=os.getpid(), t=time.time(), episode=self.episode,
             step=int(self.world.steps[0]), dropped=self.dropped.as_dict(),
@@ -314,8 +246,10 @@ class WorldService:
                 "steps_per_second": self.steps_per_second(), "missed_deadlines": self.missed,
                 "unattended_steps": self.unattended, "finished": self.finished,
                 "cloud_clock": self.config.cloud_clock, "cloud_waits": self.cloud_waits,
-                "jammer": "off" if jammer is None else
-                f"{jammer.x:g},{jammer.y:g},{jammer.power_w:g},{jammer.height_m:g}",
+                "jammer": "; ".join(
+                    f"{jammer.id}: {jammer.x:g},{jammer.y:g},{jammer.power_w:g},"
+                    f"{jammer.height_m:g}{'' if jammer.path is None else ' moving'}"
+                    for jammer in self.desk.current()) or "off",
             },
         )
 
@@ -351,7 +285,7 @@ class WorldService:
         world, config = self.world, self.config
         seed = episode_seed(config.seed, self.episode)
         if config.swap_every is not None and self.episode % config.swap_every == 0:
-            self.desk.schedule(self._scheduled_jammer())
+            self.desk.schedule(self._scheduled_jammers())
             self._apply_jammer()  # before the reset, which reads the jammer's levels
         world.reset([0], [seed])
         # Each UAV's next mission, announced with this one's observations so that its agent
@@ -395,13 +329,15 @@ class WorldService:
             if out_of_time():
                 return False
 
-    def _scheduled_jammer(self) -> JammerInfo | None:
-        """The jammer the run's schedule sets for this episode, the first of a period."""
+    def _scheduled_jammers(self) -> JammersInForce:
+        """The jammers the run's schedule sets for this episode, the first of a period."""
         if self.episode < self.config.swap_every:  # the run's own, until the first swap
             return self.desk.current()
-        setting = self.jammer_at(self.episode)
-        return JammerInfo(x=setting.x, y=setting.y, power_w=setting.power_w,
-                          height_m=self.scenario.jammer.height_m)
+        return tuple(JammerInfo.of(jammer, index)
+                     for index, jammer in enumerate(self.jammer_at(self.episode)))
+
+    def _world_jammers(self, jammers: JammersInForce) -> tuple[Jammer, ...]:
+        return tuple(jammer.as_jammer(self.scenario) for jammer in jammers)
 
     def _cloud_round(self, stop: threading.Event) -> bool:
         """Hand each UAV's agent what its receiver reported along the step just flown, and
@@ -427,12 +363,12 @@ class WorldService:
         return True
 
     def _apply_jammer(self) -> None:
-        for jammer in self.desk.take():
-            self.world.set_jammer(slice(None), JammerInfo.params(jammer))
+        for jammers in self.desk.take():
+            self.world.set_jammers(slice(None), self._world_jammers(jammers))
             self._publish_event(JammerChanged(
-                t=time.time(), source=ROLE, jammer=jammer, episode=self.episode,
+                t=time.time(), source=ROLE, jammers=list(jammers), episode=self.episode,
                 step=int(self.world.steps[0])))
-            self.log.info("jammer changed to %s", jammer)
+            self.log.info(describe_jammers(jammers))
 
     def _publish_step(self, active: set[int]) -> None:
         w = self.world
@@ -473,7 +409,15 @@ class WorldService:
             sinr_db=w.sinr_db[0].tolist(), level=w.level[0].tolist(),
             status=outcome_labels(w.status[0]),
             destination=[tuple(d) for d in w.destination[0].tolist()],
-            jammer_in_force=self.desk.in_force(), jammer_known=True)))
+            jammers_in_force=list(self.desk.in_force()), jammer_places=self._jammer_places(),
+            jammer_known=True)))
+
+    def _jammer_places(self) -> list[JammerPlace]:
+        """Where each jammer in force is now, and whether it transmits (slots as listed)."""
+        w = self.world
+        return [JammerPlace(id=jammer.id, x=float(w.jammer_x[0, slot]),
+                            y=float(w.jammer_y[0, slot]), on=bool(w.jammer_power[0, slot] > 0))
+                for slot, jammer in enumerate(self.desk.in_force())]
 
     def _commands(self, actions: dict[int, Action], active: set[int]
                   ) -> tuple[np.ndarray, np.ndarray]:
@@ -515,22 +459,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="move the jammer to a fresh random setting every K episodes")
     jam = parser.add_mutually_exclusive_group()
     jam.add_argument("--jammer", metavar="X,Y,P[,H]")
+    jam.add_argument("--jammers", metavar="JSON",
+                     help="the jammers in force, as messages carry them (a restarted world)")
     jam.add_argument("--no-jammer", action="store_true")
     return parser
-
-
-def initial_jammer(scenario: Scenario, text: str | None, off: bool) -> JammerInfo | None:
-    """The jammer a run starts with: --jammer, --no-jammer or the scenario's."""
-    if off:
-        return None
-    if text is None:
-        default = RadioModel.jammer_of(scenario)
-        return None if default is None else JammerInfo(
-            x=default.x, y=default.y, power_w=default.power_w, height_m=default.height_m)
-    jammer = JammerInfo.parse(text, scenario.jammer.height_m)
-    if not scenario.area.contains(jammer.x, jammer.y):
-        raise ValueError(f"jammer {text!r}: position outside the area")
-    return jammer if jammer.power_w > 0 else None
 
 
 def world_setup(args: argparse.Namespace) -> bus.ServiceSetup:
@@ -545,7 +477,7 @@ def world_setup(args: argparse.Namespace) -> bus.ServiceSetup:
         value = getattr(args, name)
         if value is not None and not value > 0:
             raise ValueError(f"--{name} must be positive")
-    jammer = initial_jammer(scenario, args.jammer, args.no_jammer)
+    jammers = initial_jammers(scenario, args.jammer, args.jammers, args.no_jammer)
     config = WorldConfig(uavs=uavs, seed=args.seed, episodes=args.episodes,
                          duration=args.duration, first_episode=args.first_episode,
                          clock=args.clock, rate=args.rate, deadline=args.deadline,
@@ -554,7 +486,7 @@ def world_setup(args: argparse.Namespace) -> bus.ServiceSetup:
     topics = Topics(args.prefix)
 
     def run(session: zenoh.Session, stop: threading.Event, log: logging.Logger) -> int:
-        WorldService(session, topics, scenario, config, jammer, log).run(stop)
+        WorldService(session, topics, scenario, config, jammers, log).run(stop)
         return 0
 
     return bus.ServiceSetup(endpoint_from(args.endpoint),

@@ -34,7 +34,7 @@ class Feed:
         self.dropped = bus.Dropped(log)
         self._lock = threading.Lock()
         self._undrawn: SinrMap | None = None
-        self._drawn_jammer: tuple | None = None
+        self._drawn_jammers: tuple | None = None
         self._declared: list = []
 
     def start(self) -> None:
@@ -62,7 +62,7 @@ class Feed:
         jammer it puts in force shows at once."""
         reply = bus.query(self.session, self.topics.jammer_control, JammerReply, command)
         if reply.accepted:
-            self.state.on_jammer(reply.jammer)
+            self.state.on_jammers(tuple(reply.jammers))
         return reply
 
     # -- zenoh's threads: store and return ---------------------------------------------------
@@ -88,7 +88,7 @@ class Feed:
         answered: after that, events and puts keep them current."""
         if not self.state.jammer_known and (reply := self._ask(
                 self.topics.jammer_control, JammerReply, JammerCommand(action="show"))):
-            self.state.on_jammer(reply.jammer)
+            self.state.on_jammers(tuple(reply.jammers))
         if self.state.map is None and (update := self._ask(self.topics.sinr_map, SinrMap)):
             self._on_map(update)
 
@@ -109,9 +109,8 @@ class Feed:
             else:
                 self.state.set_map("served", self.maps.payload(
                     levels, version=update.version, mode=update.mode))
-        known, jammer = self.state.current_jammer()
-        if known and (known, jammer) != self._drawn_jammer:
-            self._drawn_jammer = (known, jammer)
+        known, jammers = self.state.current_jammers()
+        if known and (known, jammers) != self._drawn_jammers:
+            self._drawn_jammers = (known, jammers)
             self.state.set_map("true", self.maps.payload(
-                self.maps.true(jammer),
-                jammer=None if jammer is None else jammer.model_dump(mode="json")))
+                self.maps.true(jammers), jammers=[jammer._asdict() for jammer in jammers]))

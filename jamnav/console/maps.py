@@ -12,9 +12,8 @@ import numpy as np
 from planning.maps import LevelRaster
 from planning.networks import from_bytes, predict_levels
 from shared.cloud_messages import SinrMap
-from shared.jammer_messages import JammerInfo
 from shared.measurements import MeasurementSpec, scenario_features
-from shared.radio import RadioModel
+from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 
 DISPLAY_CELLS = 100  # along the area's longer side: 1 m cells in the shipped 100 m area
@@ -44,8 +43,9 @@ class CoverageMaps:
         grid = update.grid
         return LevelRaster(update.levels(), grid.x0, grid.y0, grid.spacing).level_at(self.points)
 
-    def true(self, jammer: JammerInfo | None) -> np.ndarray:
-        return self.radio.evaluate(self.points, JammerInfo.params(jammer)).level
+    def true(self, jammers: tuple[JammerParams, ...]) -> np.ndarray:
+        """The world's levels (shadowing included) under ``jammers``, where they are now."""
+        return self.radio.evaluate(self.points, jammers).level
 
     def payload(self, levels: np.ndarray, **about: Any) -> dict[str, Any]:
         """What the page draws: the grid and its levels as base64 int8, row-major from the

@@ -5,12 +5,13 @@ scripts (``static/``), a small JSON API, and the frames pushed to each open page
 server-sent events, at most ``PUSH_HZ`` a second and only when something changed.
 
     GET  /                the page
-    GET  /api/state       episode, step, uavs [{id, x, y, status, destination}], jammer,
+    GET  /api/state       episode, step, uavs [{id, x, y, status, destination}], jammers,
                           map_version, ... and every UAV's trail this episode
     GET  /api/scenario    the area, the GBSs and the levels, to draw them
     GET  /api/map/<which> the ``served`` or the ``true`` coverage map, when drawn
     GET  /api/stream      the frames (text/event-stream)
-    POST /api/jammer      {"x", "y", "power_w"} or {"off": true}: through the control topic
+    POST /api/jammer      {"x", "y", "power_w"} (with "add": true: one more), {"id", "x", "y"},
+                          {"remove": ID} or {"off": true}: through the control topic
 
 Safe by default: loopback only unless told, requests naming another host refused (a web
 page elsewhere cannot reach it by DNS tricks), a POST only as JSON from the console's own

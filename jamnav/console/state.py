@@ -1,8 +1,8 @@
 """What the console knows of a running system, folded from the messages of the bus: the fleet
-(positions, trails, destinations, statuses), the jammer in force and the cloud's estimate of
-it, the SINR map in service, the outcomes so far and a timeline of what happened. One plain,
-thread-safe class, so that ``GET /api/state`` and the pushed frames read one consistent view;
-the bus and the web server around it only feed it and read it."""
+(positions, trails, destinations, statuses), the jammers in force (where each is now) and the
+cloud's estimate, the SINR map in service, the outcomes so far and a timeline of what
+happened. One plain, thread-safe class, so that ``GET /api/state`` and the pushed frames read
+one consistent view; the bus and the web server around it only feed it and read it."""
 
 from __future__ import annotations
 
@@ -15,14 +15,17 @@ from jamnav.arguments import UsageError, jammer_command
 from jamnav.event_lines import describe_event
 from shared.cloud_messages import SinrMap
 from shared.events import UavOutcomes
-from shared.jammer_messages import JammerCommand, JammerEstimate, JammerInfo
+from shared.jammer_messages import JammerCommand, JammerEstimate, JammerPlace, JammersInForce
 from shared.outcomes import FINAL_OUTCOMES
+from shared.radio import JammerParams
 from shared.world_messages import WorldState
 
 TRAIL_POINTS = 600  # per UAV and episode: ten times the shipped episode limit
 TIMELINE_KEPT = 200
 TIMELINE_IN_FRAME = 30  # the newest entries, in every frame: a page that missed some catches up
 JAMMER_FIELDS = ("x", "y", "power_w")
+REQUESTS = ('{"x", "y", "power_w"}, the same with "add": true, {"id", "x", "y"}, {"remove": ID} '
+            'or {"off": true}')
 ESTIMATE_FIELDS = ("present", "x", "y", "power_w", "sd_x_m", "sd_y_m", "sd_power_db",
                    "map_version", "measurements")
 
@@ -36,7 +39,8 @@ class ConsoleState:
         self.clock: str | None = None
         self._state: WorldState | None = None
         self._trails: list[list[tuple[float, float]]] = []
-        self.jammer: JammerInfo | None = None
+        self.jammers: JammersInForce = ()
+        self.jammer_places: list[JammerPlace] = []
         self.jammer_known = False  # until the world said, "no jammer" is not known either
         self.estimate: JammerEstimate | None = None
         self.map: SinrMap | None = None
@@ -59,7 +63,8 @@ class ConsoleState:
             self.episode, self.step, self.clock = state.episode, state.step, state.clock
             self._state = state
             if state.jammer_known:
-                self._follow_jammer(state.jammer_in_force)
+                self._follow_jammers(tuple(state.jammers_in_force))
+                self.jammer_places = list(state.jammer_places)
             self.revision += 1
 
     def on_event(self, event) -> None:
@@ -69,7 +74,7 @@ class ConsoleState:
             if isinstance(event, UavOutcomes):
                 self._outcomes[event.episode] = list(event.outcomes)
             elif event.type == "jammer_changed":
-                self.jammer, self.jammer_known = event.jammer, True
+                self._follow_jammers(tuple(event.jammers))
             elif event.type == "run_finished":
                 self.finished = True
             text = describe_event(event.model_dump(mode="json"))
@@ -77,14 +82,17 @@ class ConsoleState:
                 self._note(event.type, event.t, text)
             self.revision += 1
 
-    def on_jammer(self, jammer: JammerInfo | None) -> None:
-        """The jammer in force, as the world answered a command or a ``show``."""
+    def on_jammers(self, jammers: JammersInForce) -> None:
+        """The jammers in force, as the world answered a command or a ``show``."""
         with self._lock:
-            self._follow_jammer(jammer)
+            self._follow_jammers(jammers)
 
-    def _follow_jammer(self, jammer: JammerInfo | None) -> None:
-        if not self.jammer_known or jammer != self.jammer:
-            self.jammer, self.jammer_known = jammer, True
+    def _follow_jammers(self, jammers: JammersInForce) -> None:
+        if not self.jammer_known or jammers != self.jammers:
+            self.jammers, self.jammer_known = jammers, True
+            # Until the world's next state says, each stands where it was set.
+            self.jammer_places = [JammerPlace(id=jammer.id, x=jammer.x, y=jammer.y, on=True)
+                                  for jammer in jammers]
             self.revision += 1
 
     def on_estimate(self, estimate: JammerEstimate) -> None:
@@ -144,9 +152,30 @@ class ConsoleState:
         with self._lock:
             return self._maps.get(which)
 
-    def current_jammer(self) -> tuple[bool, JammerInfo | None]:
+    def current_jammers(self) -> tuple[bool, tuple[JammerParams, ...]]:
+        """Whether the jammers are known, and the radio model's of those transmitting now,
+        where they are."""
         with self._lock:
-            return self.jammer_known, self.jammer
+            power = {jammer.id: (jammer.power_w, jammer.height_m) for jammer in self.jammers}
+            return self.jammer_known, tuple(
+                JammerParams(place.x, place.y, *power[place.id]) for place in self.jammer_places
+                if place.on and place.id in power)
+
+    def _jammers_view(self) -> list[dict[str, Any]]:
+        """Each jammer in force: where it is now and whether it transmits, its power, and the
+        path it drives (its start first), if any."""
+        places = {place.id: place for place in self.jammer_places}
+        view = []
+        for jammer in self.jammers:
+            place = places.get(jammer.id)
+            view.append({
+                "id": jammer.id, "power_w": jammer.power_w,
+                "x": jammer.x if place is None else place.x,
+                "y": jammer.y if place is None else place.y,
+                "on": True if place is None else place.on,
+                "path": None if jammer.path is None else [
+                    [jammer.x, jammer.y], *map(list, jammer.path.waypoints)]})
+        return view
 
     def _view(self) -> dict[str, Any]:
         s = self._state
@@ -159,8 +188,7 @@ class ConsoleState:
         return {
             "revision": self.revision, "episode": self.episode, "step": self.step,
             "clock": self.clock, "uavs": uavs,
-            "jammer": None if self.jammer is None else self.jammer.model_dump(
-                include=set(JAMMER_FIELDS)),
+            "jammers": self._jammers_view(),
             "jammer_known": self.jammer_known,
             "estimate": None if self.estimate is None else self.estimate.model_dump(
                 include=set(ESTIMATE_FIELDS)),
@@ -176,21 +204,36 @@ class ConsoleState:
 
 
 def jammer_request(body: Any) -> JammerCommand:
-    """The world's command for a ``POST /api/jammer`` body, ``{"x", "y", "power_w"}`` or
-    ``{"off": true}``; ValueError with a one-line reason for anything else."""
+    """The world's command for a ``POST /api/jammer`` body: ``{"x", "y", "power_w"}`` (one
+    jammer in place of all), the same with ``"add": true`` (one more), ``{"id", "x", "y"}``
+    (move that one there), ``{"remove": ID}`` or ``{"off": true}``; ValueError with a one-line
+    reason for anything else."""
     if not isinstance(body, dict):
-        raise ValueError('expected a JSON object: {"x", "y", "power_w"} or {"off": true}')
-    if "off" in body:
-        if body != {"off": True}:
-            raise ValueError('{"off": true} switches the jammer off and takes nothing else')
+        raise ValueError(f"expected a JSON object: {REQUESTS}")
+    keys = set(body)
+    if keys == {"off"} and body["off"] is True:
         return jammer_command("off")
-    if set(body) != set(JAMMER_FIELDS):
-        raise ValueError("expected exactly x, y and power_w (metres, watts), or "
-                         '{"off": true}')
-    numbers = [body[name] for name in JAMMER_FIELDS]
-    if any(isinstance(v, bool) or not isinstance(v, int | float) for v in numbers):
+    if keys == {"remove"}:
+        return _jammer_command("remove", None, body["remove"], body)
+    if keys == {"id", "x", "y"}:
+        return _jammer_command("move", (body["x"], body["y"], None, None), body["id"], body)
+    if keys in ({*JAMMER_FIELDS}, {*JAMMER_FIELDS, "add"}):
+        if body.get("add", True) is not True:
+            raise ValueError('"add" is true or left out')
+        action = "add" if "add" in body else "set"
+        return _jammer_command(action, (*(body[name] for name in JAMMER_FIELDS), None), None,
+                               body)
+    raise ValueError(f"expected one of {REQUESTS}")
+
+
+def _jammer_command(action: str, numbers: tuple | None, jammer_id: Any, body: dict
+                    ) -> JammerCommand:
+    given = [value for value in (numbers or ()) if value is not None]
+    if any(isinstance(v, bool) or not isinstance(v, int | float) for v in given):
         raise ValueError("x, y and power_w must be numbers")
+    if jammer_id is not None and (isinstance(jammer_id, bool) or not isinstance(jammer_id, int)):
+        raise ValueError("a jammer's id is a whole number")
     try:
-        return jammer_command("set", (*numbers, None), what=json.dumps(body))
+        return jammer_command(action, numbers, json.dumps(body), jammer_id)
     except UsageError as exc:
         raise ValueError(str(exc)) from None

@@ -19,7 +19,7 @@
   const model = {
     scenario: null, frame: null, episode: null, trails: [],
     maps: {}, loaded: {}, showing: "served", timeline: new Map(), background: null,
-    drawing: false,
+    drawing: false, drag: null,  // drag: a jammer under the pointer, or a click on the map
   };
   // Read by the tests and the benchmark: frames received (the last at lastAt, ms) and maps.
   window.consoleStats = { frames: 0, lastAt: 0, maps: 0 };
@@ -177,10 +177,32 @@
       ctx.stroke();
       ctx.setLineDash([]);
     }
-    const jammer = frame.jammer;
-    if (!jammer) return;
-    const [px, py] = toCanvas(jammer.x, jammer.y);
-    ctx.fillStyle = COLOURS.collision;
+    for (const jammer of frame.jammers) drawJammer(jammer);
+  }
+
+  // A jammer: its path, if it drives one, with an arrow at its end (the way it goes), then a
+  // diamond where it is now (grey while it does not transmit), its id and power beside it.
+  function drawJammer(jammer) {
+    if (jammer.path) {
+      const corners = jammer.path.map(([x, y]) => toCanvas(x, y));
+      ctx.strokeStyle = "#ffffffaa";
+      ctx.lineWidth = 2;
+      ctx.setLineDash([4, 4]);
+      ctx.beginPath();
+      corners.forEach(([cx, cy], i) => (i ? ctx.lineTo(cx, cy) : ctx.moveTo(cx, cy)));
+      ctx.stroke();
+      ctx.setLineDash([]);
+      const [[ax, ay], [bx, by]] = corners.slice(-2);
+      const angle = Math.atan2(by - ay, bx - ax);
+      ctx.beginPath();
+      ctx.moveTo(bx, by);
+      ctx.lineTo(bx - 12 * Math.cos(angle - 0.4), by - 12 * Math.sin(angle - 0.4));
+      ctx.moveTo(bx, by);
+      ctx.lineTo(bx - 12 * Math.cos(angle + 0.4), by - 12 * Math.sin(angle + 0.4));
+      ctx.stroke();
+    }
+    const [px, py] = dragged(jammer);
+    ctx.fillStyle = jammer.on ? COLOURS.collision : "#888888";
     ctx.strokeStyle = "#ffffff";
     ctx.lineWidth = 2;
     ctx.beginPath();
@@ -191,7 +213,14 @@
     ctx.stroke();
     ctx.fillStyle = "#ffffff";
     ctx.font = "bold 12px system-ui, sans-serif";
-    ctx.fillText(`${jammer.power_w} W`, px + 12, py + 4);
+    ctx.fillText(`J${jammer.id} ${jammer.power_w} W`, px + 12, py + 4);
+  }
+
+  // Where a jammer is drawn: under the pointer while it is dragged.
+  function dragged(jammer) {
+    const drag = model.drag;
+    return drag && drag.id === jammer.id && drag.moved ? [drag.px, drag.py]
+      : toCanvas(jammer.x, jammer.y);
   }
 
   function draw() {
@@ -213,8 +242,34 @@
 
   // -- the side panel --------------------------------------------------------------------------
   function describeJammer(jammer) {
-    return jammer ? `(${jammer.x.toFixed(1)}, ${jammer.y.toFixed(1)}) m, ${jammer.power_w} W`
-                  : "off";
+    return `J${jammer.id} (${jammer.x.toFixed(1)}, ${jammer.y.toFixed(1)}) m, `
+      + `${jammer.power_w} W${jammer.path ? ", driving" : ""}${jammer.on ? "" : ", silent now"}`;
+  }
+
+  // One line per jammer in force, each with its remove button (rebuilt when the set changes).
+  function renderJammers(frame) {
+    const list = $("jammer-list");
+    const key = JSON.stringify(frame.jammers.map((j) => [j.id, j.power_w, j.path]));
+    if (list.dataset.key !== key) {
+      list.dataset.key = key;
+      list.replaceChildren(...frame.jammers.map((jammer) => {
+        const item = document.createElement("li");
+        item.dataset.id = jammer.id;
+        const text = document.createElement("span");
+        const remove = document.createElement("button");
+        remove.type = "button";
+        remove.textContent = "Remove";
+        remove.addEventListener("click", () => command({ remove: jammer.id }).catch(showRefusal));
+        item.append(text, " ", remove);
+        return item;
+      }));
+    }
+    for (const jammer of frame.jammers) {
+      const item = list.querySelector(`li[data-id="${jammer.id}"] span`);
+      if (item && item.textContent !== describeJammer(jammer)) {
+        item.textContent = describeJammer(jammer);
+      }
+    }
   }
 
   function show(id, text) {
@@ -230,8 +285,9 @@
         : `, ${(100 * frame.map_accuracy).toFixed(1)} % held-out`})`;
     show("status", `${where} · ${map}${frame.finished ? " · run finished" : ""}`);
     show("served-version", frame.map_version === null ? "" : `(v${frame.map_version})`);
-    show("jammer-text", frame.jammer_known
-      ? `In force: ${describeJammer(frame.jammer)}` : "In force: not known yet");
+    show("jammer-text", !frame.jammer_known ? "In force: not known yet"
+      : frame.jammers.length ? "In force:" : "In force: none");
+    renderJammers(frame);
     const e = frame.estimate;
     show("estimate-text", !e ? "" : e.present
       ? `Cloud's estimate (map v${e.map_version}): (${e.x.toFixed(1)} ± ${e.sd_x_m.toFixed(1)}, `
@@ -292,17 +348,49 @@
     });
     const reply = await response.json();
     if (!response.ok) throw new Error(`refused: ${reply.error}`);
-    $("message").textContent = `jammer ${describeJammer(reply.jammer)} from the next step`;
+    $("message").textContent = `${reply.jammers.length} jammer(s) in force from the next step`;
     $("message").className = "";
   }
 
-  canvas.addEventListener("click", (event) => {
-    if (!model.scenario) return;
+  // The pointer on the map: pressed on a jammer, a drag moves it there; pressed anywhere else,
+  // a click adds a jammer of the power set beside.
+  function pointer(event) {
     const box = canvas.getBoundingClientRect();
-    const [x, y] = toWorld((event.clientX - box.left) * canvas.width / box.width,
-                           (event.clientY - box.top) * canvas.height / box.height);
-    const round = (v) => Math.round(v * 10) / 10;
-    command({ x: round(x), y: round(y), power_w: Number($("power").value) })
+    return [(event.clientX - box.left) * canvas.width / box.width,
+            (event.clientY - box.top) * canvas.height / box.height];
+  }
+  const round = (v) => Math.round(v * 10) / 10;
+
+  canvas.addEventListener("pointerdown", (event) => {
+    if (!model.scenario || !model.frame) return;
+    const [px, py] = pointer(event);
+    const hit = model.frame.jammers.find((jammer) => {
+      const [jx, jy] = toCanvas(jammer.x, jammer.y);
+      return Math.hypot(jx - px, jy - py) <= 12;
+    });
+    model.drag = { id: hit ? hit.id : null, startX: px, startY: py, px, py, moved: false };
+    canvas.setPointerCapture(event.pointerId);
+  });
+  canvas.addEventListener("pointermove", (event) => {
+    const drag = model.drag;
+    if (!drag || drag.id === null) return;
+    [drag.px, drag.py] = pointer(event);
+    drag.moved = drag.moved || Math.hypot(drag.px - drag.startX, drag.py - drag.startY) > 3;
+    schedule();
+  });
+  canvas.addEventListener("pointerup", (event) => {
+    const drag = model.drag;
+    model.drag = null;
+    if (!drag) return;
+    const [x, y] = toWorld(...pointer(event));
+    if (drag.id !== null) {
+      if (drag.moved) {
+        command({ id: drag.id, x: round(x), y: round(y) }).catch(showRefusal);
+      }
+      schedule();
+      return;
+    }
+    command({ x: round(x), y: round(y), power_w: Number($("power").value), add: true })
       .catch(showRefusal);
   });
   $("off").addEventListener("click", () => command({ off: true }).catch(showRefusal));
