@@ -45,3 +45,9 @@ class TrainConfig:
             return self.memory_capacity
         return 30_000 if uavs <= 2 else 100_000
 
+    def epsilon_at(self, episode: int) -> float:
+        """Exploration after ``episode`` episodes: linear from start to end over the first
+        ``epsilon_decay_share`` of the run, then held."""
+        decay_episodes = max(1, int(self.episodes * self.epsilon_decay_share))
+        share = min(1.0, episode / decay_episodes)
+        return self.epsilon_start + share * (self.epsilon_end - self.epsilon_start)

@@ -1,6 +1,6 @@
-"""The episodes value-network training flies (Algorithm 1, lines 2-13), as seen from the
-learner: the training jammer of each period, the state each UAV acted from and the reward it
-received, handed over mission by mission, and each episode's statistics."""
+"""The episodes value-network training flies (the episode loop of Algorithm 1), as seen
+from the learner: the training jammer of each period, the state each UAV acted from and the
+reward it received, handed over mission by mission, and each episode's statistics."""
 
 from __future__ import annotations
 

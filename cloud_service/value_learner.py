@@ -84,6 +84,39 @@ class Learner:
         """By the name of their checkpoint file."""
         return {"value": self.net, "target": self.target, "best": self.best}
 
+    def initialize(self, states: np.ndarray, values: np.ndarray, config: TrainConfig,
+                   rng: np.random.Generator) -> float:
+        """Start from state-value pairs: the network is fitted to them, they are the first
+        content of D, and the target network starts as a copy. Returns the fit's last MSE."""
+        mse = fit_value_net(self.net, states, values, config.orca_epochs, config, rng)
+        self.memory.push(states, values)
+        self.sync_target()
+        return mse
+
+    def remember(self, missions: list[tuple[np.ndarray, np.ndarray]], gamma: float,
+                 device: torch.device) -> None:
+        """updateValue of Algorithm 1: the finished missions' TD targets go into D."""
+        missions = [m for m in missions if len(m[0])]
+        if missions:
+            self.memory.push(*td_targets(self.target, missions, gamma, device))
+
+    def learn(self, rng: np.random.Generator, config: TrainConfig) -> None:
+        """The mini-batch steps after an episode, once D holds a batch."""
+        device = torch.device(config.device)
+        steps = config.updates_per_episode if self.memory.size >= config.batch_size else 0
+        self.net.train()
+        for _ in range(steps):
+            states, values = self.memory.sample(rng, config.batch_size)
+            regression_step(self.net, self.optimizer, torch.from_numpy(states).to(device),
+                            torch.from_numpy(values).to(device))
+        self.net.eval()
+
+    def sync_target(self) -> None:
+        self.target.load_state_dict(self.net.state_dict())
+
+    def keep_as_best(self) -> None:
+        self.best.load_state_dict(self.net.state_dict())
+
 
 def fit_value_net(
     net: TorchValueNetwork,
@@ -103,12 +136,18 @@ def fit_value_net(
         order = torch.from_numpy(rng.permutation(len(values))).to(device)
         for start in range(0, len(values), config.batch_size):
             batch = order[start : start + config.batch_size]
-            loss = torch.nn.functional.mse_loss(net(x_all[batch]), y_all[batch])
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
-            loss_value = float(loss.detach())
+            loss_value = float(regression_step(net, optimizer, x_all[batch], y_all[batch]))
     return loss_value
+
+
+def regression_step(net: TorchValueNetwork, optimizer: torch.optim.Optimizer,
+                    states: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """One Adam step on the mean squared error of ``net`` against ``values``; the loss."""
+    loss = torch.nn.functional.mse_loss(net(states), values)
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+    return loss.detach()
 
 
 def td_targets(

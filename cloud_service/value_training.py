@@ -13,20 +13,25 @@
    jammer settings) and the best-scoring one is the result: with epsilon held at 0.1 the
    network keeps moving, and successive checkpoints differ by a few points of success.
 Checkpoints make a run resumable; Ctrl-C while learning writes one before it stops.
+
+``train`` is the driver; its parts live beside it: the settings (``training_config``), the
+networks, memory and regressions (``value_learner``), the flown episodes as the learner sees
+them (``training_flight``) and the checkpoints (``training_checkpoint``).
 """
 
 from __future__ import annotations
 
 import csv
+import functools
 import platform
 import signal
 import subprocess
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import torch
@@ -48,7 +53,7 @@ from cloud_service.training_checkpoint import (
 )
 from cloud_service.training_config import TrainConfig
 from cloud_service.training_flight import EpisodeStats, TrainingFlight
-from cloud_service.value_learner import Learner, discounted_returns, fit_value_net, td_targets
+from cloud_service.value_learner import Learner, discounted_returns
 from planning.chosen import lookahead_policy
 from planning.features import METHODS, MethodOptions
 from planning.networks import ValueNetwork, save_network
@@ -60,8 +65,275 @@ from shared.scenario import Scenario
 from world_sim.core import VectorWorld
 
 VALIDATION_SEED = 20210614  # fixed: every model is scored on the same episodes
+LOG_FILE = "train_log.csv"
 LOG_FIELDS = ["episode", "wall_seconds", "epsilon", "mean_return", "straight_bound",
               "success", "disconnection", "collision", "timeout"]
+RECENT_EPISODES = 200  # the success rate shown while training is over the last ones
+
+
+def train(
+    scenario: Scenario,
+    config: TrainConfig,
+    out: Path,
+    resume: bool = False,
+    progress: Callable[[dict], None] | None = None,
+    command: str = "",
+) -> dict:
+    """Run Algorithm 1 and write value_net.safetensors, its card, train_log.csv and the
+    reward curve into ``out``. Returns the card. Ctrl-C while learning saves a checkpoint of
+    the episodes done before it raises KeyboardInterrupt (reported as phase "interrupted")."""
+    out.mkdir(parents=True, exist_ok=True)
+    commit = git_commit()  # the code that trains, even if the tree moves on meanwhile
+    report = progress or (lambda info: None)
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)  # before the networks are made: it draws their weights
+    learner = Learner.fresh(scenario, config)
+    maps = perfect_maps(scenario)
+    checkpoint = Checkpoint(out)
+    log_path = out / LOG_FILE
+    if resume:
+        so_far = resume_learner(checkpoint, learner, scenario, config, log_path)
+        # The random stream is not checkpointed: a resumed session draws one of its own.
+        rng = np.random.default_rng([config.seed, 1, so_far.episodes_done])
+        report({"phase": "resume", "episodes_done": so_far.episodes_done})
+    else:
+        rng = np.random.default_rng([config.seed, 1])
+        so_far = initialize_with_orca(scenario, config, learner, maps, rng, report)
+        with log_path.open("w", newline="") as handle:
+            csv.writer(handle).writerow(LOG_FIELDS)
+    with log_path.open("a", newline="") as log:
+        learning = TdLearning(scenario, config, learner, maps, rng, so_far, log, report)
+        learning.fly_all(checkpoint)
+    card = run_card(scenario, config, learning, command, commit)
+    save_network(learner.best.inference(), out / VALUE_NET_FILE, card)
+    from shared.plots import plot_reward_curve  # matplotlib only when writing
+
+    plot_reward_curve(log_path, out / "reward_curve.png")
+    return card
+
+
+@dataclass
+class Progress:
+    """How far a run has come: what its checkpoints record besides the learner and the
+    settings (``training_checkpoint.PROGRESS_FIELDS``)."""
+
+    episodes_done: int = 0
+    next_episode: int = 0  # the first episode not yet started
+    wall_seconds: float = 0.0  # as of the last save, the ORCA initialization included
+    decisions: int = 0
+    td_seconds: float = 0.0
+    orca: dict = field(default_factory=dict)  # the initialization: its size, MSE and time
+    checkpoint_scores: list[dict] = field(default_factory=list)
+
+
+def resume_learner(checkpoint: Checkpoint, learner: Learner, scenario: Scenario,
+                   config: TrainConfig, log_path: Path) -> Progress:
+    """Load the checkpoint into ``learner``; the log forgets what was flown after it."""
+    state = checkpoint.load(learner, scenario, config)
+    so_far = Progress(**{part.name: state[part.name] for part in fields(Progress)})
+    forget_logged_after(log_path, so_far.episodes_done)
+    return so_far
+
+
+def initialize_with_orca(scenario: Scenario, config: TrainConfig, learner: Learner,
+                         maps: RasterMaps, rng: np.random.Generator,
+                         report: Callable[[dict], None]) -> Progress:
+    """Line 1 of Algorithm 1: ORCA's state-value pairs initialize the network and the
+    replay memory D."""
+    started = time.perf_counter()
+    report({"phase": "orca", "episodes": config.orca_episodes})
+    states, values = orca_pairs(scenario, config, config.uav_count(scenario), maps,
+                                METHODS[config.method])
+    mse = learner.initialize(states, values, config, rng)
+    orca = {"episodes": config.orca_episodes, "pairs": int(len(values)),
+            "epochs": config.orca_epochs, "final_mse": mse,
+            "seconds": time.perf_counter() - started}
+    return Progress(wall_seconds=orca["seconds"], orca=orca)
+
+
+def orca_pairs(
+    scenario: Scenario, config: TrainConfig, uavs: int, maps: RasterMaps, options: MethodOptions
+) -> tuple[np.ndarray, np.ndarray]:
+    """State-value pairs D from ORCA trajectories: discounted returns of each mission."""
+    gamma = scenario.policy.gamma
+    states: list[np.ndarray] = []
+    values: list[np.ndarray] = []
+
+    def on_missions(missions: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        for mission_states, rewards in missions:
+            if len(rewards):
+                states.append(mission_states)
+                values.append(discounted_returns(rewards, gamma))
+
+    world = VectorWorld(scenario, config.envs, uavs)
+    # Offset seeds so ORCA flies other missions than TD training's first episodes.
+    flight = TrainingFlight(world, maps, options, config.seed + 1_000_003, on_missions,
+                            lambda stats: None)
+    fly_episodes(world, OrcaController(scenario), range(config.orca_episodes), flight)
+    return np.concatenate(states), np.concatenate(values).astype(np.float32)
+
+
+class TdLearning:
+    """The episode loop of Algorithm 1 for one session of a run, fresh or resumed: the
+    lookahead flies epsilon-greedy on the true map of the training jammer, each finished
+    mission's TD targets go into the replay memory, and the network learns after every
+    episode. Episodes fly in chunks, each ending where a checkpoint is due: there the network
+    is validated and the run saved."""
+
+    def __init__(self, scenario: Scenario, config: TrainConfig, learner: Learner,
+                 maps: RasterMaps, rng: np.random.Generator, so_far: Progress, log: IO[str],
+                 report: Callable[[dict], None]):
+        self.scenario, self.config, self.learner, self.maps = scenario, config, learner, maps
+        self.rng, self.progress, self.log, self.report = rng, so_far, log, report
+        self.log_rows = csv.writer(log)
+        # The lookahead the shipped networks were trained with (the TD targets are one-step,
+        # and a deeper search would cost training 5-10x).
+        self.policy = lookahead_policy(scenario, learner.net.inference(), shield=False,
+                                       **PUBLISHED_LOOKAHEAD)
+        self.controller = LookaheadController(self.policy, maps, rng=rng)
+        self.controller.epsilon = config.epsilon_at(so_far.episodes_done)
+        self.world = VectorWorld(scenario, config.envs, config.uav_count(scenario))
+        self.recent: list[np.ndarray] = []  # the outcomes of the last RECENT_EPISODES
+        self.wall_before, self.session_start = so_far.wall_seconds, time.perf_counter()
+        self.interrupt = DeferredInterrupt()
+        self.chunk_end = so_far.episodes_done
+
+    def wall_seconds(self) -> float:
+        """The run's wall time so far, its earlier sessions included."""
+        return self.wall_before + time.perf_counter() - self.session_start
+
+    def fly_all(self, checkpoint: Checkpoint) -> None:
+        """Fly chunk after chunk to the run's last episode, each validated and saved; Ctrl-C
+        saves the episodes done and raises KeyboardInterrupt."""
+        with self.interrupt:
+            while self.progress.episodes_done < self.config.episodes:
+                if self.fly_chunk():
+                    self.validate_chunk()
+                self.progress.wall_seconds = self.wall_seconds()
+                checkpoint.save(self.learner, {
+                    **asdict(self.progress), "config": asdict(self.config),
+                    "settings": run_settings(self.scenario, self.config)})
+                if self.interrupt.requested:
+                    self.report({"phase": "interrupted",
+                                 "episodes_done": self.progress.episodes_done,
+                                 "checkpoint": str(checkpoint.dir)})
+                    raise KeyboardInterrupt
+
+    def fly_chunk(self) -> bool:
+        """Fly the episodes up to the next checkpoint; False if Ctrl-C stopped them."""
+        progress, config = self.progress, self.config
+        done = progress.episodes_done
+        # Chunks end at multiples of checkpoint_every_episodes, so that a run resumed from
+        # where Ctrl-C stopped it validates and checkpoints where any other does.
+        every = config.checkpoint_every_episodes
+        self.chunk_end = min(done + every - done % every, config.episodes)
+        remember = functools.partial(self.learner.remember, gamma=self.scenario.policy.gamma,
+                                     device=torch.device(config.device))
+        flight = TrainingFlight(self.world, self.maps, METHODS[config.method], config.seed,
+                                remember, self.after_episode)
+        started = time.perf_counter()
+        episodes = range(progress.next_episode, progress.next_episode + self.chunk_end - done)
+        try:
+            fly_episodes(self.world, self.controller, episodes, flight)
+            finished = True
+        except StopRequested:
+            finished = False
+        progress.decisions += flight.decisions
+        progress.td_seconds += time.perf_counter() - started
+        # Stopped, the episodes in flight are dropped and the resumed run flies the next
+        # unstarted ones instead: their missions count as any other.
+        progress.next_episode = flight.next_episode
+        self.log.flush()
+        return finished
+
+    def after_episode(self, stats: EpisodeStats) -> None:
+        """The network learns from the replay memory, the lookahead flies its new weights
+        and the target network follows every ``target_sync_episodes``; then the episode is
+        logged. Ctrl-C stops the chunk here, where the run's state is whole."""
+        self.progress.episodes_done += 1
+        done, config = self.progress.episodes_done, self.config
+        self.controller.epsilon = config.epsilon_at(done)
+        self.learner.learn(self.rng, config)
+        # The lookahead takes the updated numpy form (off the CPU it is a copy), reading the
+        # weights that decay has left subnormal as zeros: the same values, without the cost
+        # some CPUs put on them (``Network.read_subnormals_as_zero``).
+        self.policy.value_net = self.learner.net.inference().read_subnormals_as_zero()
+        if done % config.target_sync_episodes == 0:
+            self.learner.sync_target()
+        self.log_episode(stats)
+        # The chunk's last episode goes on to its validation: stopping there would leave it
+        # to a resumed run that never validates at that episode.
+        if self.interrupt.requested and done < self.chunk_end:
+            raise StopRequested
+
+    def log_episode(self, stats: EpisodeStats) -> None:
+        """A row of train_log.csv, and the progress shown while training."""
+        done, epsilon = self.progress.episodes_done, self.controller.epsilon
+        counts = [int(np.count_nonzero(stats.outcomes == o)) for o in
+                  (Outcome.SUCCESS, Outcome.DISCONNECTION, Outcome.COLLISION, Outcome.TIMEOUT)]
+        wall = self.wall_seconds()
+        self.log_rows.writerow([done, round(wall, 3), round(epsilon, 4),
+                                round(stats.mean_return, 5), round(stats.straight_bound, 5),
+                                *counts])
+        self.recent.append(stats.outcomes)
+        del self.recent[:-RECENT_EPISODES]
+        self.report({"phase": "td", "episodes_done": done, "episodes": self.config.episodes,
+                     "epsilon": epsilon, "wall_seconds": wall,
+                     "recent_success": float(np.mean(np.concatenate(self.recent)
+                                                     == Outcome.SUCCESS))})
+
+    def validate_chunk(self) -> None:
+        """Score the network as it is now; the best-scoring one so far is kept aside."""
+        done, scores = self.progress.episodes_done, self.progress.checkpoint_scores
+        scores.append({"episode": done, **validate(
+            self.scenario, self.learner.net.inference().read_subnormals_as_zero(),
+            self.config.validation_episodes, self.config.uav_count(self.scenario)),
+            "resident_mib": resident_mib()})
+        leader = best_score(scores)
+        if leader is scores[-1]:
+            self.learner.keep_as_best()
+        self.report({"phase": "validation", "episodes_done": done,
+                     "success_rate": scores[-1]["success_rate"],
+                     "best_episode": leader["episode"],
+                     "best_success_rate": leader["success_rate"]})
+
+
+def run_card(scenario: Scenario, config: TrainConfig, learning: TdLearning, command: str,
+             commit: str) -> dict[str, Any]:
+    """The card of the run's result: how it was made, where, and which checkpoint won."""
+    progress = learning.progress
+    done, td_seconds, scores = (progress.episodes_done, progress.td_seconds,
+                                progress.checkpoint_scores)
+    validation = dict(best_score(scores))
+    selected_episode = validation.pop("episode")
+    validation.pop("resident_mib", None)
+    return {
+        "command": command,
+        "scenario": scenario.name,
+        "seed": config.seed,
+        "episodes": done,
+        "envs": config.envs,
+        "uavs": config.uav_count(scenario),
+        "wall_seconds": round(learning.wall_seconds(), 1),
+        "decisions": progress.decisions,
+        "decisions_per_second": (round(progress.decisions / td_seconds, 1) if td_seconds
+                                 else None),
+        "episodes_per_second": round(done / td_seconds, 2) if td_seconds else None,
+        "orca_initialization": progress.orca,
+        "git_commit": commit,
+        "torch": torch.__version__,
+        "device": config.device,
+        "cpu": cpu_description(),
+        "config": asdict(config),
+        "validation": validation,
+        "selection": {
+            "rule": "the checkpoint with the highest validation success; ties go to the later",
+            "selected_episode": selected_episode,
+            "checkpoints": [{"episode": s["episode"], "success_rate": s["success_rate"],
+                             "resident_mib": s.get("resident_mib")} for s in scores],
+        },
+        "reproduce": command or "jamnav train",
+    }
 
 
 def validate(scenario: Scenario, net: ValueNetwork, episodes: int, uavs: int) -> dict[str, float]:
@@ -145,220 +417,3 @@ class DeferredInterrupt:
 
 class StopRequested(Exception):
     """Raised at the end of an episode when Ctrl-C asked training to stop."""
-
-
-def train(
-    scenario: Scenario,
-    config: TrainConfig,
-    out: Path,
-    resume: bool = False,
-    progress: Callable[[dict], None] | None = None,
-    command: str = "",
-) -> dict:
-    """Run Algorithm 1 and write value_net.safetensors, its card, train_log.csv and the
-    reward curve into ``out``. Returns the card. Ctrl-C while learning saves a checkpoint of
-    the episodes done before it raises KeyboardInterrupt (reported as phase "interrupted")."""
-    out.mkdir(parents=True, exist_ok=True)
-    commit = git_commit()  # the code that trains, even if the tree moves on meanwhile
-    uavs = config.uav_count(scenario)
-    device = torch.device(config.device)
-    torch.set_num_threads(config.threads)
-    torch.manual_seed(config.seed)
-    rng = np.random.default_rng([config.seed, 1])
-    options = METHODS[config.method]
-    learner = Learner.fresh(scenario, config)
-    net, target, best, memory = learner.net, learner.target, learner.best, learner.memory
-    maps = perfect_maps(scenario)
-    checkpoint = Checkpoint(out)
-    log_path = out / "train_log.csv"
-    report = progress or (lambda info: None)
-
-    if resume:
-        state = checkpoint.load(learner, scenario, config)
-        done, next_episode = state["episodes_done"], state["next_episode"]
-        scores = state["checkpoint_scores"]
-        wall_before, decisions, td_seconds = (state["wall_seconds"], state["decisions"],
-                                              state["td_seconds"])
-        orca_info = state["orca"]
-        rng = np.random.default_rng([config.seed, 1, done])
-        forget_logged_after(log_path, done)
-        report({"phase": "resume", "episodes_done": done})
-    else:
-        started = time.perf_counter()
-        report({"phase": "orca", "episodes": config.orca_episodes})
-        states, values = orca_pairs(scenario, config, uavs, maps, options)
-        mse = fit_value_net(net, states, values, config.orca_epochs, config, rng)
-        memory.push(states, values)
-        orca_info = {"episodes": config.orca_episodes, "pairs": int(len(values)),
-                     "epochs": config.orca_epochs, "final_mse": mse,
-                     "seconds": time.perf_counter() - started}
-        target.load_state_dict(net.state_dict())
-        done, next_episode, wall_before, decisions, td_seconds = 0, 0, orca_info["seconds"], 0, 0.0
-        scores: list[dict] = []
-        with log_path.open("w", newline="") as handle:
-            csv.writer(handle).writerow(LOG_FIELDS)
-
-    # The lookahead the shipped networks were trained with (the TD targets are one-step, and
-    # a deeper search would cost training 5-10x).
-    policy = lookahead_policy(scenario, net.inference(), shield=False, **PUBLISHED_LOOKAHEAD)
-    controller = LookaheadController(policy, maps, rng=rng)
-    world = VectorWorld(scenario, config.envs, uavs)
-    gamma = scenario.policy.gamma
-    decay_episodes = max(1, int(config.episodes * config.epsilon_decay_share))
-    recent: list[np.ndarray] = []
-    session_start = time.perf_counter()
-    log_handle = log_path.open("a", newline="")
-    log = csv.writer(log_handle)
-    interrupt = DeferredInterrupt()
-    chunk_end = done
-
-    def epsilon_at(episode: int) -> float:
-        share = min(1.0, episode / decay_episodes)
-        return config.epsilon_start + share * (config.epsilon_end - config.epsilon_start)
-
-    def on_missions(missions: list[tuple[np.ndarray, np.ndarray]]) -> None:
-        missions = [m for m in missions if len(m[0])]
-        if missions:
-            memory.push(*td_targets(target, missions, gamma, device))
-
-    def on_episode(stats: EpisodeStats) -> None:
-        nonlocal done
-        done += 1
-        controller.epsilon = epsilon_at(done)
-        net.train()
-        for _ in range(config.updates_per_episode if memory.size >= config.batch_size else 0):
-            batch_states, batch_values = memory.sample(rng, config.batch_size)
-            prediction = net(torch.from_numpy(batch_states).to(device))
-            loss = torch.nn.functional.mse_loss(prediction,
-                                                torch.from_numpy(batch_values).to(device))
-            learner.optimizer.zero_grad()
-            loss.backward()
-            learner.optimizer.step()
-        net.eval()
-        # The lookahead takes the updated numpy form (off the CPU it is a copy), reading the
-        # weights that decay has left subnormal as zeros: the same values, without the cost
-        # some CPUs put on them (``Network.read_subnormals_as_zero``).
-        policy.value_net = net.inference().read_subnormals_as_zero()
-        if done % config.target_sync_episodes == 0:
-            target.load_state_dict(net.state_dict())
-        counts = [int(np.count_nonzero(stats.outcomes == o)) for o in
-                  (Outcome.SUCCESS, Outcome.DISCONNECTION, Outcome.COLLISION, Outcome.TIMEOUT)]
-        wall = wall_before + time.perf_counter() - session_start
-        log.writerow([done, round(wall, 3), round(controller.epsilon, 4),
-                      round(stats.mean_return, 5), round(stats.straight_bound, 5), *counts])
-        recent.append(stats.outcomes)
-        del recent[:-200]
-        report({"phase": "td", "episodes_done": done, "episodes": config.episodes,
-                "epsilon": controller.epsilon, "wall_seconds": wall,
-                "recent_success": float(np.mean(np.concatenate(recent) == Outcome.SUCCESS))})
-        # The chunk's last episode goes on to its validation: stopping there would leave it
-        # to a resumed run that never validates at that episode.
-        if interrupt.requested and done < chunk_end:
-            raise StopRequested
-
-    controller.epsilon = epsilon_at(done)
-    try:
-        with interrupt:
-            while done < config.episodes:
-                # Chunks end at multiples of checkpoint_every_episodes, so that a run resumed
-                # from where Ctrl-C stopped it validates and checkpoints where any other does.
-                every = config.checkpoint_every_episodes
-                chunk_end = min(done + every - done % every, config.episodes)
-                flight = TrainingFlight(world, maps, options, config.seed, on_missions,
-                                        on_episode)
-                chunk_start = time.perf_counter()
-                try:
-                    fly_episodes(world, controller, range(next_episode, next_episode +
-                                                          chunk_end - done), flight)
-                    stopped = False
-                except StopRequested:
-                    stopped = True
-                decisions += flight.decisions
-                td_seconds += time.perf_counter() - chunk_start
-                # Stopped, the episodes in flight are dropped and the resumed run flies the
-                # next unstarted ones instead: their missions count as any other.
-                next_episode = flight.next_episode
-                log_handle.flush()
-                if not stopped:
-                    scores.append({"episode": done, **validate(
-                        scenario, net.inference().read_subnormals_as_zero(),
-                        config.validation_episodes, uavs), "resident_mib": resident_mib()})
-                    leader = best_score(scores)
-                    if leader is scores[-1]:
-                        best.load_state_dict(net.state_dict())
-                    report({"phase": "validation", "episodes_done": done,
-                            "success_rate": scores[-1]["success_rate"],
-                            "best_episode": leader["episode"],
-                            "best_success_rate": leader["success_rate"]})
-                checkpoint.save(learner, {
-                    "episodes_done": done, "next_episode": next_episode,
-                    "wall_seconds": wall_before + time.perf_counter() - session_start,
-                    "decisions": decisions, "td_seconds": td_seconds, "orca": orca_info,
-                    "checkpoint_scores": scores, "config": asdict(config),
-                    "settings": run_settings(scenario, config),
-                })
-                if interrupt.requested:
-                    report({"phase": "interrupted", "episodes_done": done,
-                            "checkpoint": str(checkpoint.dir)})
-                    raise KeyboardInterrupt
-    finally:
-        log_handle.close()
-
-    wall = wall_before + time.perf_counter() - session_start
-    validation = dict(best_score(scores))
-    selected_episode = validation.pop("episode")
-    validation.pop("resident_mib", None)
-    card = {
-        "command": command,
-        "scenario": scenario.name,
-        "seed": config.seed,
-        "episodes": done,
-        "envs": config.envs,
-        "uavs": uavs,
-        "wall_seconds": round(wall, 1),
-        "decisions": decisions,
-        "decisions_per_second": round(decisions / td_seconds, 1) if td_seconds else None,
-        "episodes_per_second": round(done / td_seconds, 2) if td_seconds else None,
-        "orca_initialization": orca_info,
-        "git_commit": commit,
-        "torch": torch.__version__,
-        "device": config.device,
-        "cpu": cpu_description(),
-        "config": asdict(config),
-        "validation": validation,
-        "selection": {
-            "rule": "the checkpoint with the highest validation success; ties go to the later",
-            "selected_episode": selected_episode,
-            "checkpoints": [{"episode": s["episode"], "success_rate": s["success_rate"],
-                             "resident_mib": s.get("resident_mib")} for s in scores],
-        },
-        "reproduce": command or "jamnav train",
-    }
-    save_network(best.inference(), out / VALUE_NET_FILE, card)
-    from shared.plots import plot_reward_curve  # matplotlib only when writing
-
-    plot_reward_curve(log_path, out / "reward_curve.png")
-    return card
-
-
-def orca_pairs(
-    scenario: Scenario, config: TrainConfig, uavs: int, maps: RasterMaps, options: MethodOptions
-) -> tuple[np.ndarray, np.ndarray]:
-    """State-value pairs D from ORCA trajectories: discounted returns of each mission."""
-    gamma = scenario.policy.gamma
-    states: list[np.ndarray] = []
-    values: list[np.ndarray] = []
-
-    def on_missions(missions: list[tuple[np.ndarray, np.ndarray]]) -> None:
-        for mission_states, rewards in missions:
-            if len(rewards):
-                states.append(mission_states)
-                values.append(discounted_returns(rewards, gamma))
-
-    world = VectorWorld(scenario, config.envs, uavs)
-    # Offset seeds so ORCA flies other missions than TD training's first episodes.
-    flight = TrainingFlight(world, maps, options, config.seed + 1_000_003, on_missions,
-                            lambda stats: None)
-    fly_episodes(world, OrcaController(scenario), range(config.orca_episodes), flight)
-    return np.concatenate(states), np.concatenate(values).astype(np.float32)
-
