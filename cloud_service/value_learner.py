@@ -55,7 +55,8 @@ def discounted_returns(rewards: np.ndarray, gamma: float) -> np.ndarray:
 
 
 def adam(net: TorchValueNetwork, config: TrainConfig) -> torch.optim.Adam:
-    """The paper's optimizer; the fused kernel halves the cost of a step of this small net."""
+    """The paper's optimizer, fused: a step of this small net is mostly per-operation overhead,
+    which the fused kernel saves (BENCHMARKS.md, training)."""
     return torch.optim.Adam(net.parameters(), lr=config.learning_rate,
                             weight_decay=config.weight_decay, fused=True)
 

@@ -186,8 +186,8 @@ class TdLearning:
         self.scenario, self.config, self.learner, self.maps = scenario, config, learner, maps
         self.rng, self.progress, self.log, self.report = rng, so_far, log, report
         self.log_rows = csv.writer(log)
-        # The lookahead the shipped networks were trained with (the TD targets are one-step,
-        # and a deeper search would cost training 5-10x).
+        # The lookahead the shipped networks were trained with: one step, as the TD targets
+        # are, where a deeper search would multiply the cost of training.
         self.policy = lookahead_policy(scenario, learner.net.inference(), shield=False,
                                        **PUBLISHED_LOOKAHEAD)
         self.controller = LookaheadController(self.policy, maps, rng=rng)
