@@ -1,1 +1,44 @@
-"""The cloud: the measurement memory, the online SINR map and value-network training."""
+"""The cloud of the paper: the online SINR map it keeps for the UAVs, and the offline training
+and evaluation of the value network they fly with.
+
+The online service (``python -m cloud_service.process``, started by ``jamnav up``):
+
+- ``process``: the cloud process on the bus: takes the uploads, serves the latest weights of
+  both networks and publishes every new version.
+- ``rounds``: the cloud on the world's lockstep clock, each world step's uploads as one round.
+- ``sinr_memory``: the replay memory D_w of the measurements, in SQLite.
+- ``sinr_mapping``: the online SINR mapper: watches the map's accuracy, detects a jammer
+  change, retrains and publishes.
+- ``sinr_reference``: what UAVs measured with no jammer, the reference for dB reports.
+- ``jammer_estimation``: the jammer's position and power from the uploads alone.
+- ``sinr_training``: fitting a SINR-mapping network (torch, loaded on first use; ``jamnav
+  fit-sinr`` fits the survey maps with it too).
+
+The offline parts:
+
+- ``value_training``: Algorithm 1, the value network's training (``jamnav train``), with
+  ``training_config`` (its settings), ``value_learner`` (the networks, replay memory D and
+  regressions), ``training_flight`` (the episodes flown, as the learner sees them) and
+  ``training_checkpoint`` (resumable runs, durable writes).
+- ``evaluation``: Table I's methods flown in-process (``jamnav eval``, ``jamnav table``,
+  ``jamnav figures``).
+- ``ablation``: the paper's method retrained with one open choice changed at a time.
+- ``latency_sweep``: missions on the online map against the cloud's latency (``jamnav
+  cloud-latency``).
+- ``online_map_sim``: simulated uploads through the online mapper, the paper's Fig. 2b
+  (``jamnav online-map``).
+
+Shared by both: ``torch_networks`` (the two networks as torch modules, the form both are
+trained in), ``rollout`` (the vectorized world flown by a controller, and the true and
+outdated maps as rasters, which ``process`` serves for comparison too) and
+``simulated_measurements`` (reports as a UAV's receiver makes them).
+
+Why the offline parts live here and not in a package of their own: in the paper the cloud is
+where the value network is trained, offline on a simulator (Algorithm 1), before it is served
+to the UAVs; and evaluation and the ablation fly the in-process world (``world_sim``, which the
+layering lets the cloud import and not the agents: ``tests/test_layering.py``), the proposed
+method on the online map the cloud runs in service, through the same ``OnlineSinrMapper``.
+Apart, they would copy that code or reach into the cloud from outside it.
+"""
+
+import shared  # noqa: F401  (pins the BLAS threads before numpy loads)

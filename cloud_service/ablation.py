@@ -69,7 +69,8 @@ def run_variant(variant: Variant, base: Scenario, out: Path, episodes: int, eval
     Table I's settings and with no jammer (``eval_episodes`` each, a seed apart from the
     training's validation episodes)."""
     from cloud_service.evaluation import evaluate  # torch: only in the worker that trains
-    from cloud_service.value_training import TrainConfig, train
+    from cloud_service.training_config import TrainConfig
+    from cloud_service.value_training import train
 
     scenario = base.changed(variant.scenario, f"{base.name}+{variant.name}")
     run_dir = out / variant.name

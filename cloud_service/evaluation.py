@@ -22,6 +22,8 @@ from typing import Any
 import numpy as np
 
 from cloud_service.rollout import (
+    Controller,
+    EpisodeResults,
     LookaheadController,
     OrcaController,
     StraightController,
@@ -196,6 +198,38 @@ def evaluate(
     survey map ``proposed`` starts from (default: the shipped one of the scenario's world).
     ``value_net``: default, the shipped one for the fleet's density. ``memory_dir`` keeps the
     cloud's measurement memory of a ``proposed`` run (a scratch directory otherwise)."""
+    _check_request(scenario, method, episodes, seed, jammer, uavs, swap_every)
+    schedule = swapping_jammers(scenario, jammer, swap_every, seed)
+    with tempfile.TemporaryDirectory(prefix="jamnav-eval-") as scratch:
+        controller, online = _controller(scenario, method, uavs, value_net, sinr_map,
+                                         memory_dir or Path(scratch))
+        results, start_version = _fly(scenario, controller, online, episodes, seed, schedule,
+                                      uavs, on_episode)
+    report: dict[str, Any] = {
+        "method": method,
+        "episodes": episodes,
+        "uavs": int(results.outcomes.shape[1]),
+        "seed": seed,
+        "jammers": described_jammers(schedule(0)),
+        "swap_every": swap_every,
+        "scenario": scenario.name,
+        **outcome_rates(results.outcomes),
+    }
+    if online is not None:
+        report |= _online_report(online, transient_episodes(schedule, start_version),
+                                 results.outcomes)
+    if swap_every is not None:
+        report["swaps"] = [
+            {"from_episode": k, "jammers": described_jammers(schedule(k))}
+            for k in range(0, episodes, swap_every)]
+    report["outcomes"] = [[Outcome(code).label for code in row] for row in results.outcomes]
+    return report
+
+
+def _check_request(scenario: Scenario, method: str, episodes: int, seed: int,
+                   jammer: JammerSetting | JammerSet | None, uavs: int | None,
+                   swap_every: int | None) -> None:
+    """What ``evaluate`` cannot fly, refused in one line before anything is loaded."""
     if method not in METHODS:
         raise EvaluationError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     if not isinstance(scenario, Scenario):
@@ -209,72 +243,76 @@ def evaluate(
     if jammer is not None and not isinstance(jammer, JammerSetting | tuple):
         raise EvaluationError(f"jammer {jammer!r}: expected a JammerSetting(x, y, power_w), a "
                               "scenario's jammers or None")
-    schedule = swapping_jammers(scenario, jammer, swap_every, seed)
-    online = None
-    with tempfile.TemporaryDirectory(prefix="jamnav-eval-") as scratch:
-        if method in LOOKAHEAD_METHODS:
-            policy = load_policy(scenario, value_net_for(
-                value_net, scenario.area.square_metres, uavs or scenario.missions.uav_count))
-            if method == "proposed":
-                try:
-                    survey = sinr_map or sinr_map_for(scenario)
-                except NoSurveyMapError as exc:
-                    raise EvaluationError(str(exc)) from None
-                online = OnlineMaps(scenario, survey, memory_dir or Path(scratch))
-                maps = online
-            else:
-                maps = perfect_maps(scenario) if method == "perfect" else outdated_maps(scenario)
-            controller = LookaheadController(policy, maps)
-        elif method == "orca":
-            controller = OrcaController(scenario)
-        else:
-            controller = StraightController()
 
-        start_version = np.zeros(episodes, dtype=np.int64)
 
-        def episode_done(episode: int) -> None:
-            if online is not None and episode + 1 < episodes:
-                start_version[episode + 1] = online.served_version
-            if on_episode is not None:
-                on_episode(episode)
+def _controller(scenario: Scenario, method: str, uavs: int | None, value_net: Path | None,
+                sinr_map: Path | None, memory_dir: Path) -> tuple[Controller, OnlineMaps | None]:
+    """What flies ``method``, and for ``proposed`` the online maps it flies on."""
+    if method == "orca":
+        return OrcaController(scenario), None
+    if method == "straight":
+        return StraightController(), None
+    policy = load_policy(scenario, value_net_for(
+        value_net, scenario.area.square_metres, uavs or scenario.missions.uav_count))
+    if method != "proposed":
+        maps = perfect_maps(scenario) if method == "perfect" else outdated_maps(scenario)
+        return LookaheadController(policy, maps), None
+    try:
+        survey = sinr_map or sinr_map_for(scenario)
+    except NoSurveyMapError as exc:
+        raise EvaluationError(str(exc)) from None
+    online = OnlineMaps(scenario, survey, memory_dir)
+    return LookaheadController(policy, online), online
 
-        try:
-            results = run_episodes(
-                scenario, controller, episodes, seed, schedule, uavs,
-                num_envs=1 if online else 64,
-                on_step=online.upload if online else None,
-                on_episode=episode_done,
-                record_measurements=online is not None,
-            )
-        finally:
-            if online is not None:
-                online.close()
-    report: dict[str, Any] = {
-        "method": method,
-        "episodes": episodes,
-        "uavs": int(results.outcomes.shape[1]),
-        "seed": seed,
-        "jammers": described_jammers(schedule(0)),
-        "swap_every": swap_every,
-        "scenario": scenario.name,
-        **outcome_rates(results.outcomes),
-    }
-    if online is not None:
-        transient = transient_episodes(schedule, start_version)
-        for part, rows in (("transient", transient), ("steady", ~transient)):
-            report[part] = {"episodes": int(rows.sum()),
-                            **(outcome_rates(results.outcomes[rows]) if rows.any() else {})}
-        report["transient"]["rule"] = ("episodes flown on a map older than the jammer: from a "
-                                       "change until a map published since")
-        report["events"] = sorted(online.mapper.events + online.service_events,
-                                  key=lambda event: event["t"])
-        report["cloud_latency_s"] = scenario.online_map.cloud_latency_s
-        report["flight_seconds"] = round(online.now, 3)  # what the cloud saw flown, all told
-    if swap_every is not None:
-        report["swaps"] = [
-            {"from_episode": k, "jammers": described_jammers(schedule(k))}
-            for k in range(0, episodes, swap_every)]
-    report["outcomes"] = [[Outcome(code).label for code in row] for row in results.outcomes]
+
+def _fly(
+    scenario: Scenario,
+    controller: Controller,
+    online: OnlineMaps | None,
+    episodes: int,
+    seed: int,
+    schedule: JammerSchedule,
+    uavs: int | None,
+    on_episode: Callable[[int], None] | None,
+) -> tuple[EpisodeResults, np.ndarray]:
+    """Fly the episodes; with online maps, in one world (the map adapts between episodes,
+    as in the real system), noting the map version each episode starts on."""
+    start_version = np.zeros(episodes, dtype=np.int64)
+
+    def episode_done(episode: int) -> None:
+        if online is not None and episode + 1 < episodes:
+            start_version[episode + 1] = online.served_version
+        if on_episode is not None:
+            on_episode(episode)
+
+    try:
+        results = run_episodes(
+            scenario, controller, episodes, seed, schedule, uavs,
+            num_envs=1 if online else 64,
+            on_step=online.upload if online else None,
+            on_episode=episode_done,
+            record_measurements=online is not None,
+        )
+    finally:
+        if online is not None:
+            online.close()
+    return results, start_version
+
+
+def _online_report(online: OnlineMaps, transient: np.ndarray,
+                   outcomes: np.ndarray) -> dict[str, Any]:
+    """The proposed method's part of the report: the transient and steady episodes apart,
+    and what the cloud did and when."""
+    report: dict[str, Any] = {}
+    for part, rows in (("transient", transient), ("steady", ~transient)):
+        report[part] = {"episodes": int(rows.sum()),
+                        **(outcome_rates(outcomes[rows]) if rows.any() else {})}
+    report["transient"]["rule"] = ("episodes flown on a map older than the jammer: from a "
+                                   "change until a map published since")
+    report["events"] = sorted(online.mapper.events + online.service_events,
+                              key=lambda event: event["t"])
+    report["cloud_latency_s"] = online.scenario.online_map.cloud_latency_s
+    report["flight_seconds"] = round(online.now, 3)  # what the cloud saw flown, all told
     return report
 
 

@@ -121,36 +121,26 @@ def simulate_online_map(
     """
     rng = np.random.default_rng(seed)
     dt = scenario.timing.step_s
-    now = [0.0]
+    clock = SimulatedClock()
     memory = SinrMemory(":memory:", MeasurementSpec.of(scenario))
     mapper = OnlineSinrMapper(scenario, memory, network, accuracy, detector=detector,
                               retrain=retrain or RetrainConfig(max_seconds=None),
-                              clock=lambda: now[0], background=False, seed=seed)
-    area = scenario.area
-    test_xy = np.random.default_rng(seed + 1).uniform(
-        (area.x_min, area.y_min), (area.x_max, area.y_max), size=(test_points, 2))
-    test_features = scenario_features(scenario, test_xy)
-    radio = RadioModel(scenario)
-    truth = {setting: radio.evaluate(test_xy, jammer_params(scenario, setting)).level
-             for setting in set(schedule.settings)}
+                              clock=clock, background=False, seed=seed)
+    probe = AccuracyProbe(scenario, schedule, test_points, seed + 1)
     fleet = Fleet(scenario, uavs, rng)
-    times, accuracies, versions, monitor = [], [], [], []
-    predicted, predicted_version = None, None
+    series: dict[str, list] = {"t": [], "accuracy": [], "version": [], "monitor": []}
     steps = int(round(duration / dt))
     if on_step is not None:
         on_step(0, steps)
     for step in range(steps):
-        now[0] = step * dt
-        setting = schedule.at(now[0])
+        clock.now = step * dt
+        setting = schedule.at(clock.now)
         fleet.fly()
-        mapper.ingest(fleet.uploads(jammer_params(scenario, setting), now[0], step))
-        monitor.append(mapper.state()["recent_accuracy"])
-        if predicted_version != mapper.version:
-            predicted = predict_levels(mapper.current_network(), test_features)
-            predicted_version = mapper.version
-        times.append(now[0])
-        accuracies.append(float((predicted == truth[setting]).mean()))
-        versions.append(mapper.version)
+        mapper.ingest(fleet.uploads(jammer_params(scenario, setting), clock.now, step))
+        series["monitor"].append(mapper.state()["recent_accuracy"])
+        series["accuracy"].append(probe.accuracy(mapper, setting))
+        series["t"].append(clock.now)
+        series["version"].append(mapper.version)
         if on_step is not None:
             on_step(step + 1, steps)
     memory.close()
@@ -165,12 +155,42 @@ def simulate_online_map(
                                                      strict=True)],
         "detector": {"probability_floor": mapper.detector.floor,
                      "threshold": mapper.detector.threshold},
-        "t": times,
-        "accuracy": accuracies,
-        "version": versions,
-        "monitor": monitor,
+        **series,
         "events": mapper.events,
     }
+
+
+class SimulatedClock:
+    """The mapper's clock in a simulation: the time the simulation sets."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class AccuracyProbe:
+    """The true accuracy of the map in service: its levels at fixed uniform positions
+    against the true ones under the jammer of the moment. The map's levels are predicted
+    again only when a new map is in service."""
+
+    def __init__(self, scenario: Scenario, schedule: Schedule, points: int, seed: int):
+        area = scenario.area
+        xy = np.random.default_rng(seed).uniform(
+            (area.x_min, area.y_min), (area.x_max, area.y_max), size=(points, 2))
+        self.features = scenario_features(scenario, xy)
+        radio = RadioModel(scenario)
+        self.truth = {setting: radio.evaluate(xy, jammer_params(scenario, setting)).level
+                      for setting in set(schedule.settings)}
+        self.predicted: np.ndarray | None = None
+        self.version: int | None = None
+
+    def accuracy(self, mapper: OnlineSinrMapper, setting: JammerSetting | None) -> float:
+        if self.version != mapper.version:
+            self.predicted = predict_levels(mapper.current_network(), self.features)
+            self.version = mapper.version
+        return float((self.predicted == self.truth[setting]).mean())
 
 
 def save_online_map_figure(timeline: dict[str, Any], out: Path) -> None:

@@ -22,7 +22,7 @@ from shared.radio import RadioModel
 from shared.scenario import SEED_MAX, Scenario
 
 if TYPE_CHECKING:  # the training module imports torch: only where a command trains
-    from cloud_service.value_training import TrainConfig
+    from cloud_service.training_config import TrainConfig
 
 
 def one_torch_thread() -> None:
@@ -56,7 +56,8 @@ def _check_checkpoint(out: Path, scenario: Scenario, config: TrainConfig, resume
     would load must be whole and its run made with the same settings (train() would fail
     late, as a traceback, or continue another run under this one's card); a fresh start would
     throw it away."""
-    from cloud_service.value_training import Checkpoint, CheckpointError, Learner
+    from cloud_service.training_checkpoint import Checkpoint, CheckpointError
+    from cloud_service.value_learner import Learner
 
     checkpoint = Checkpoint(out)
     if resume:
@@ -74,7 +75,8 @@ def _check_checkpoint(out: Path, scenario: Scenario, config: TrainConfig, resume
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from cloud_service.value_training import MAX_ENVS, TrainConfig, train
+    from cloud_service.training_config import MAX_ENVS, TrainConfig
+    from cloud_service.value_training import train
     from jamnav.progress import ProgressBar
 
     scenario = scenario_argument(args)

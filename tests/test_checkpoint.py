@@ -19,8 +19,10 @@ from pathlib import Path
 
 import pytest
 
-from cloud_service import value_training
-from cloud_service.value_training import Checkpoint, TrainConfig, train
+from cloud_service import training_checkpoint, training_config, value_training
+from cloud_service.training_checkpoint import Checkpoint
+from cloud_service.training_config import TrainConfig
+from cloud_service.value_training import train
 from jamnav.cli import main
 from jamnav.cli_training import _check_checkpoint as check_checkpoint
 from planning.networks import WeightsError, from_bytes
@@ -39,7 +41,7 @@ def train_and_die(out: str, victim: str) -> None:
     halfway through writing the file named ``victim``, or on removing the first checkpoint
     when ``victim`` is "rmtree"."""
     writes: collections.Counter[str] = collections.Counter()
-    write = value_training.write_synced
+    write = training_checkpoint.write_synced
 
     def die(*_args) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
@@ -51,9 +53,9 @@ def train_and_die(out: str, victim: str) -> None:
             die()
         write(path, data)
 
-    value_training.write_synced = write_or_die
+    training_checkpoint.write_synced = write_or_die
     if victim == "rmtree":
-        value_training.shutil.rmtree = die
+        training_checkpoint.shutil.rmtree = die
     train(load_scenario(), tiny(40), Path(out))
 
 
@@ -180,7 +182,7 @@ def test_a_second_ctrl_c_stops_at_once(scenario, tmp_path):
 def test_jamnav_train_says_where_ctrl_c_left_the_run(tmp_path, monkeypatch, capsys):
     from jamnav.progress import ProgressBar
 
-    monkeypatch.setattr(value_training, "TrainConfig", functools.partial(
+    monkeypatch.setattr(training_config, "TrainConfig", functools.partial(
         TrainConfig, orca_episodes=40, orca_epochs=2, checkpoint_every_episodes=20,
         validation_episodes=1))
     update = ProgressBar.update

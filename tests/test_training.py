@@ -11,16 +11,9 @@ import pytest
 
 from cloud_service import value_training
 from cloud_service.torch_networks import TorchValueNetwork
-from cloud_service.value_training import (
-    ARITHMETIC_FLAGS,
-    MAX_ENVS,
-    ReplayMemory,
-    TrainConfig,
-    discounted_returns,
-    td_targets,
-    train,
-    validate,
-)
+from cloud_service.training_config import MAX_ENVS, TrainConfig
+from cloud_service.value_learner import ReplayMemory, discounted_returns, td_targets
+from cloud_service.value_training import ARITHMETIC_FLAGS, train, validate
 from jamnav.cli import main
 from planning.networks import ValueNetwork, from_bytes, load_network, to_bytes
 
