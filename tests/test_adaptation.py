@@ -23,7 +23,7 @@ from shared.wire import MessageError, decode, encode
 from shared.zenoh_cli_codec import zenoh_cli_decoder
 from tests.conftest import variant
 from world_sim.core import VectorWorld, episode_seed
-from world_sim.jammers import swapping_jammers
+from world_sim.jammers import jammer_set, swapping_jammers
 
 
 # -- what a UAV keeps -------------------------------------------------------------------------
@@ -171,7 +171,8 @@ def test_a_malformed_estimate_is_refused(damage):
 
 # -- the resilience evaluation ----------------------------------------------------------------
 def test_swapped_jammers_are_seeded_and_inside_the_area(scenario):
-    first = JammerSetting(0.0, 0.0, 1.0)
+    first = jammer_set(scenario, JammerSetting(0.0, 0.0, 1.0))
+    assert [(j.x, j.y, j.power_w, j.height_m) for j in first] == [(0.0, 0.0, 1.0, 30.0)]
     schedule = swapping_jammers(scenario, first, 10, seed=4)
     again = swapping_jammers(scenario, first, 10, seed=4)
     settings = [schedule(k) for k in range(0, 100, 10)]
@@ -179,8 +180,8 @@ def test_swapped_jammers_are_seeded_and_inside_the_area(scenario):
     assert settings == [again(k) for k in range(0, 100, 10)]
     assert len(set(settings)) == 10
     low, high = scenario.training.jammer_power_range_w
-    for setting in settings[1:]:
-        assert scenario.area.contains(setting.x, setting.y)
+    for (setting,) in settings[1:]:  # one still jammer each
+        assert scenario.area.contains(setting.x, setting.y) and setting.still
         assert low <= setting.power_w <= high
     assert swapping_jammers(scenario, first, None, 4)(500) == first
 

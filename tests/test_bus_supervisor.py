@@ -20,6 +20,7 @@ from shared.paper import JammerSetting
 from shared.scenario import load_scenario, resolve_scenario_path
 from shared.shipped import SINR_MAP_NO_JAMMER
 from tests.support import free_endpoint, gone, wait_until
+from world_sim.jammers import scenario_jammers
 
 
 def run_json(capsys, *argv: str):
@@ -181,17 +182,46 @@ def _memory_rows(path: Path, scenario) -> list[tuple]:
                     strict=True))
 
 
-@pytest.mark.parametrize(("latency", "reports"),
-                         [(None, "level"), (0.0, "level"), (30.0, "level"), (None, "db")],
-                         ids=["scenario-latency", "no-latency", "30-s-latency", "db-reports"])
+# A driven jammer and a blinking one, beside the convoy's: what the world moves and switches.
+MOVING_JAMMERS = """
+[[jammers]]
+x = 20.0
+y = -20.0
+power_w = 1.0
+height_m = 30.0
+efficiency_db = -20.0
+[jammers.path]
+waypoints = [[20.0, 20.0], [-20.0, 20.0]]
+speed_mps = 4.0
+loop = true
+[[jammers]]
+x = -25.0
+y = -25.0
+power_w = 1.0
+height_m = 30.0
+efficiency_db = -20.0
+[jammers.schedule]
+kind = "duty"
+on_s = 5.0
+off_s = 3.0
+"""
+
+
+@pytest.mark.parametrize(("latency", "reports", "jammers"),
+                         [(None, "level", "swapped"), (0.0, "level", "swapped"),
+                          (30.0, "level", "swapped"), (None, "db", "swapped"),
+                          (None, "level", "moving")],
+                         ids=["scenario-latency", "no-latency", "30-s-latency", "db-reports",
+                              "moving-jammers"])
 def test_the_cloud_on_the_lockstep_clock_flies_eval_s_maps_and_outcomes(supervisor, tmp_path,
-                                                                       latency, reports):
+                                                                       latency, reports,
+                                                                       jammers):
     """Lockstep with the online map puts the cloud on the clock: each step's uploads are
     taken, and what they trigger finished, before the world goes on, in simulated time. The
-    same seed, jammers (a fresh one every 2 episodes), cloud latency and reports then give
-    what ``jamnav eval --method proposed`` gives: the same maps, published at the same flight
-    times (so in service at the same steps), the same stored measurements, in order, and the
-    same per-UAV outcomes."""
+    same seed, jammers (a fresh one every 2 episodes; or three of a scenario file, driving
+    and blinking), cloud latency and reports then give what ``jamnav eval --method
+    proposed`` gives: the same maps, published at the same flight times (so in service at the
+    same steps), the same stored measurements, in order, and the same per-UAV outcomes."""
     run = tmp_path / "run"
     extra = [] if latency is None else ["--cloud-latency", str(latency)]
     scenario = load_scenario()
@@ -202,22 +232,33 @@ def test_the_cloud_on_the_lockstep_clock_flies_eval_s_maps_and_outcomes(supervis
         scenario = load_scenario(path)
         assert scenario.uav.report == "db"
         extra += ["--scenario", str(path)]
+    if jammers == "moving":
+        path = tmp_path / "moving.toml"
+        path.write_text(resolve_scenario_path("convoy").read_text().replace(
+            "[rewards]", MOVING_JAMMERS + "\n[rewards]", 1))
+        scenario = load_scenario(path)
+        assert len(scenario.jammers) == 3
+        extra += ["--scenario", str(path)]
+        flown = scenario_jammers(scenario)
+    else:
+        extra += ["--jammer", "0,0,1", "--swap-every", "2"]
+        flown = JammerSetting(0.0, 0.0, 1.0)
     process = supervisor("--uavs", "3", "--episodes", "4", "--lockstep", "--map", "online",
-                         "--jammer", "0,0,1", "--swap-every", "2", "--seed", "5",
-                         "--deadline", "10", "--no-figures", *extra,
+                         "--seed", "5", "--deadline", "10", "--no-figures", *extra,
                          "--endpoint", free_endpoint(), "--run-dir", str(run))
     _, err = process.communicate(timeout=400)
     assert process.returncode == 0, err[-2000:]
     report = json.loads((run / "report.json").read_text())
     if latency is not None:
         scenario = scenario.changed({"online_map.cloud_latency_s": latency})
-    expected = evaluate(scenario, "proposed", 4, 5, JammerSetting(0.0, 0.0, 1.0), 3,
-                        swap_every=2, memory_dir=tmp_path / "eval")
+    expected = evaluate(scenario, "proposed", 4, 5, flown, 3,
+                        swap_every=None if jammers == "moving" else 2,
+                        memory_dir=tmp_path / "eval")
     published = [(e["t"], e["sha256"]) for e in expected["events"]
                  if e["type"] == "sinr_weights_published"]
     cards = sorted((json.loads(card.read_text()) for card in
                     (run / "sinr_maps").glob("sinr_map_v*.json")), key=lambda c: c["version"])
-    assert len(published) >= 2  # the jammer was met, and the maps followed it
+    assert len(published) >= 2  # the jammers were met, and the maps followed them
     assert [(card["flown_s"], card["sha256"]) for card in cards] == published
     stored = _memory_rows(run / RUN_DIR_FILE, scenario)
     assert stored == _memory_rows(tmp_path / "eval" / "measurements.sqlite", scenario)
