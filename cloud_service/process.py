@@ -32,7 +32,7 @@ from typing import Any
 
 import zenoh
 
-from cloud_service.jammer_estimation import JammerEstimate as EstimatedJammer
+from cloud_service.estimated_jammer import JammerEstimate as EstimatedJammer
 from cloud_service.rollout import RasterMaps
 from cloud_service.rounds import RoundDesk, delay_rounds
 from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights, RetrainConfig

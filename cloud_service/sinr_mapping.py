@@ -29,26 +29,26 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from cloud_service.jammer_estimation import (
+from cloud_service.estimated_jammer import (
     NO_JAMMER,
-    REPORT_SIGMA_DB,
     JammerEstimate,
     JammerHypotheses,
+    posterior_hypotheses,
+)
+from cloud_service.jammer_estimation import locate_jammer
+from cloud_service.map_correction import (
     corrected_level_probabilities,
     corrected_levels,
-    fit_shadowing_sigma,
     ideal_level_probabilities,
     ideal_model_spread_db,
-    locate_jammer,
-    positions_from_features,
-    posterior_hypotheses,
-    sigma_fit_sample,
-    sinr_beliefs,
     sinr_report_probabilities,
 )
+from cloud_service.no_jammer_belief import fit_shadowing_sigma, sigma_fit_sample, sinr_beliefs
+from cloud_service.report_likelihood import REPORT_SIGMA_DB
 from cloud_service.simulated_measurements import uniform_positions
 from cloud_service.sinr_memory import SinrMemory, Uploads
 from cloud_service.sinr_reference import SinrReference, shift_evidence
+from cloud_service.upload_positions import positions_from_features
 from planning.maps import MAP_SPACING_M, LevelRaster, sinr_network_raster
 from planning.networks import SinrMapNetwork, predict_probabilities, sha256, to_bytes
 from shared.measurements import MeasurementBatch, scenario_features

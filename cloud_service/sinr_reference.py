@@ -24,7 +24,8 @@ import math
 
 import numpy as np
 
-from cloud_service.jammer_estimation import OUTLIER_SHARE, SinrBelief
+from cloud_service.no_jammer_belief import SinrBelief
+from cloud_service.report_likelihood import OUTLIER_SHARE
 from shared.scenario import Scenario
 
 # Reports within a cell, at least, before its spread counts towards the pooled one.

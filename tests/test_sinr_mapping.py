@@ -12,13 +12,9 @@ import torch
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from cloud_service.jammer_estimation import JammerEstimate as EstimatedJammer
-from cloud_service.jammer_estimation import (
-    JammerFit,
-    JammerHypotheses,
-    jammer_hypotheses,
-    positions_from_features,
-)
+from cloud_service.estimated_jammer import JammerEstimate as EstimatedJammer
+from cloud_service.estimated_jammer import JammerHypotheses
+from cloud_service.jammer_estimation import JammerFit, jammer_hypotheses
 from cloud_service.online_map_sim import Fleet, jammer_params
 from cloud_service.process import estimate_of, map_card
 from cloud_service.simulated_measurements import labelled_batch, simulated_measurements
@@ -31,6 +27,7 @@ from cloud_service.sinr_mapping import (
 )
 from cloud_service.sinr_memory import SinrMemory
 from cloud_service.sinr_training import fit_sinr_map, train_sinr_map, warm_up
+from cloud_service.upload_positions import positions_from_features
 from jamnav.cli import main
 from planning.networks import (
     accuracy_of,
