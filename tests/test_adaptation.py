@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cloud_service.change_detection import ChangeDetector
 from cloud_service.evaluation import transient_episodes
-from cloud_service.sinr_mapping import ChangeDetector
 from shared.measurements import SpotFilter
 from shared.messages import (
     JammerEstimate,

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
+from cloud_service.change_detection import ChangeDetector
 from cloud_service.estimated_jammer import NO_JAMMER
 from cloud_service.jammer_estimation import estimate_jammer
 from cloud_service.map_correction import sinr_report_probabilities
 from cloud_service.no_jammer_belief import SinrBelief
 from cloud_service.report_likelihood import OUTLIER_SHARE, ReportTables
-from cloud_service.sinr_mapping import ChangeDetector
 from cloud_service.sinr_reference import SinrReference, shift_evidence
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import load_scenario
