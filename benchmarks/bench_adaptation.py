@@ -16,17 +16,16 @@ import time
 import numpy as np
 
 from benchmarks.common import Figure
+from cloud_service.change_detection import ChangeDetector
 from cloud_service.evaluation import evaluate
-from cloud_service.jammer_estimation import (
-    SinrBelief,
-    estimate_jammer,
-    positions_from_features,
-    report_shares,
-)
+from cloud_service.jammer_estimation import estimate_jammer
+from cloud_service.no_jammer_belief import SinrBelief
 from cloud_service.online_map_sim import Fleet
+from cloud_service.report_likelihood import report_shares
 from cloud_service.rounds import delay_rounds
-from cloud_service.sinr_mapping import ChangeDetector, OnlineSinrMapper
+from cloud_service.sinr_mapping import OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
+from cloud_service.upload_positions import positions_from_features
 from planning.networks import SinrMapNetwork, load_network, predict_levels, predict_probabilities
 from shared.measurements import MeasurementBatch, MeasurementSpec, scenario_features
 from shared.paper import JammerSetting, jammer_params

@@ -20,21 +20,19 @@ import numpy as np
 from benchmarks.bench_adaptation import TruthGrid
 from benchmarks.bench_map_ceiling import LocalReportMap
 from benchmarks.common import Figure
+from cloud_service.estimated_jammer import JammerEstimate
 from cloud_service.evaluation import load_policy
-from cloud_service.jammer_estimation import (
-    JammerEstimate,
-    corrected_levels,
-    fit_shadowing_sigma,
-    positions_from_features,
-    report_shares,
-)
+from cloud_service.map_correction import corrected_levels
+from cloud_service.no_jammer_belief import fit_shadowing_sigma
 from cloud_service.online_map_sim import Fleet
+from cloud_service.report_likelihood import report_shares
 from cloud_service.rollout import (
     LookaheadController,
     outcome_rates,
     perfect_maps,
     run_episodes,
 )
+from cloud_service.upload_positions import positions_from_features
 from planning.maps import MAP_SPACING_M, LevelRaster, RasterMap
 from planning.networks import load_network, predict_levels, predict_probabilities
 from shared.measurements import MeasurementBatch, scenario_features

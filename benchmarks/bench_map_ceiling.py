@@ -23,7 +23,7 @@ from scipy.special import ndtr
 
 from benchmarks.bench_adaptation import TRUTH_SPACING_M, TruthGrid
 from benchmarks.common import Figure
-from cloud_service.jammer_estimation import map_reading
+from cloud_service.no_jammer_belief import map_reading
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
 

@@ -7,10 +7,20 @@ The online service (``python -m cloud_service.process``, started by ``jamnav up`
   both networks and publishes every new version.
 - ``rounds``: the cloud on the world's lockstep clock, each world step's uploads as one round.
 - ``sinr_memory``: the replay memory D_w of the measurements, in SQLite.
-- ``sinr_mapping``: the online SINR mapper: watches the map's accuracy, detects a jammer
-  change, retrains and publishes.
+- ``sinr_mapping``: the online SINR mapper tying the next ones together: watches the map's
+  accuracy, detects a jammer change, retrains and publishes. ``change_detection``: the rule
+  that declares a change; ``change_handling``: when the mapper estimates, refits and settles
+  on one (``RetrainConfig``); ``map_refit``: the map network refitted on the uploads plus a
+  prior over the area; ``jammer_withdrawal``: whether the jammer behind a corrected map is
+  still there; ``report_models``: how probable the cloud's models make each report.
 - ``sinr_reference``: what UAVs measured with no jammer, the reference for dB reports.
-- ``jammer_estimation``: the jammer's position and power from the uploads alone.
+- ``jammer_estimation``: the jammer's position and power from the uploads alone, or a
+  provisional map's hypotheses, built on ``jammer_evidence`` (the uploads' log-likelihood
+  ratio for a hypothesis), ``report_likelihood`` (how probable a level or dB report is at a
+  believed SINR), ``no_jammer_belief`` (what the cloud believes of the no-jammer SINR at a
+  point), ``upload_positions`` (where an upload was taken, from its features) and
+  ``estimated_jammer`` (the jammer as the cloud knows it).
+- ``map_correction``: the no-jammer map corrected with an estimated jammer.
 - ``sinr_training``: fitting a SINR-mapping network (torch, loaded on first use; ``jamnav
   fit-sinr`` fits the survey maps with it too).
 
@@ -40,5 +50,3 @@ layering lets the cloud import and not the agents: ``tests/test_layering.py``), 
 method on the online map the cloud runs in service, through the same ``OnlineSinrMapper``.
 Apart, they would copy that code or reach into the cloud from outside it.
 """
-
-import shared  # noqa: F401  (pins the BLAS threads before numpy loads)

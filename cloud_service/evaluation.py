@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from cloud_service.change_handling import RetrainConfig
 from cloud_service.rollout import (
     Controller,
     EpisodeResults,
@@ -33,7 +34,7 @@ from cloud_service.rollout import (
     run_episodes,
 )
 from cloud_service.rounds import delay_rounds
-from cloud_service.sinr_mapping import OnlineSinrMapper, RetrainConfig
+from cloud_service.sinr_mapping import OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
 from planning.chosen import lookahead_policy
 from planning.maps import RasterMap, sinr_network_raster

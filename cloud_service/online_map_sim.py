@@ -18,8 +18,10 @@ from typing import Any
 
 import numpy as np
 
+from cloud_service.change_detection import ChangeDetector
+from cloud_service.change_handling import RetrainConfig
 from cloud_service.simulated_measurements import labelled_batch
-from cloud_service.sinr_mapping import RECENT_KEPT, ChangeDetector, OnlineSinrMapper, RetrainConfig
+from cloud_service.sinr_mapping import RECENT_KEPT, OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
 from planning.networks import SinrMapNetwork, predict_levels
 from shared.measurements import MeasurementBatch, MeasurementSpec, SpotFilter, scenario_features

@@ -24,7 +24,8 @@ import math
 
 import numpy as np
 
-from cloud_service.jammer_estimation import OUTLIER_SHARE, SinrBelief
+from cloud_service.no_jammer_belief import SinrBelief
+from cloud_service.report_likelihood import OUTLIER_SHARE
 from shared.scenario import Scenario
 
 # Reports within a cell, at least, before its spread counts towards the pooled one.
@@ -40,6 +41,7 @@ class SinrReference:
         self.cell_m = online.reference_cell_m
         self.delay_s = online.reference_delay_s
         self.noise_db = scenario.uav.measurement_noise_db
+        self.detection_shift_db = online.detection_shift_db
         self.origin = np.array([area.x_min, area.y_min])
         self.shape = (math.ceil((area.y_max - area.y_min) / self.cell_m),
                       math.ceil((area.x_max - area.x_min) / self.cell_m))
@@ -69,6 +71,11 @@ class SinrReference:
             if not due.all():
                 waiting.append((cells[~due], sinr_db[~due], times[~due]))
         self._pending = waiting
+
+    def remember(self, xy: np.ndarray, sinr_db: np.ndarray, times: np.ndarray) -> None:
+        """``offer`` reports, then ``commit`` what is old enough by the latest of them."""
+        self.offer(xy, sinr_db, times)
+        self.commit(float(np.max(times)))
 
     def discard_since(self, start: float) -> None:
         """Drop the pending reports taken at or after ``start``: a change began then."""
@@ -101,6 +108,12 @@ class SinrReference:
             mean = np.where(count > 0, self.sums[rows, cols] / count, np.nan)
             sd = np.where(count > 0, np.sqrt(spread**2 / count + roughness_sq), np.nan)
         return SinrBelief(mean, sd)
+
+    def shift_evidence_at(self, xy: np.ndarray, reported_db: np.ndarray) -> np.ndarray:
+        """What each dB report ``reported_db`` taken at ``xy`` weighs for a loss of
+        ``online_map.detection_shift_db`` against none, by this reference
+        (``shift_evidence``)."""
+        return shift_evidence(self.at(xy), reported_db, self.noise_db, self.detection_shift_db)
 
     def _cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each point's cell (row, col) and whether it lies inside the area."""

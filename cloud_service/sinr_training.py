@@ -6,7 +6,7 @@ imports it on first use, so that it serves weights without waiting for torch to 
 from __future__ import annotations
 
 import time as wall
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -28,9 +28,9 @@ BATCH_SIZE = 200  # paper
 LEARNING_RATE = 5e-3  # paper
 L2 = 1e-4  # paper, as Adam's weight decay
 # The level boundaries are sharp and the marginal band (-3 to -2.21 dB) is a few metres wide;
-# at the paper's constant rate they stay blurred (about half a point of accuracy lost in our
-# runs). A cosine decay to FINAL_LR over the step budget settles them; it starts at the
-# paper's rate.
+# at the paper's constant rate they stay blurred, and accuracy is lost (BENCHMARKS.md, "Online
+# SINR mapping", the GBSs the map sees). A cosine decay to FINAL_LR over the step budget
+# settles them; it starts at the paper's rate.
 FINAL_LR = 1e-5
 FRESH_MEASUREMENTS = 20_000  # scored after fitting: +-0.1 point on an accuracy near 98 %
 _EVAL_EVERY = 100  # steps between held-out checks (early stop on target accuracy)
@@ -45,9 +45,9 @@ class TrainResult(NamedTuple):
 
 def warm_up(network: SinrMapNetwork) -> None:
     """Pay torch's one-off set-up of a fit before a jammer change needs one: the first fit in
-    a process took 1.2-1.9 s longer than the next (250 steps of icc2021's refit: 1.89 s, then
-    0.44 s). Two steps on rows of zeros, thrown away; torch's global random state is left as
-    it was, so no later fit changes."""
+    a process takes seconds longer than the next (BENCHMARKS.md, "Distributed runtime"). Two
+    steps on rows of zeros, thrown away; torch's global random state is left as it was, so no
+    later fit changes."""
     rows = np.zeros((8, network.input_size), dtype=np.float32)
     with torch.random.fork_rng():
         train_sinr_map(rows, np.zeros(8, dtype=np.int64), network.levels, network=network,
@@ -85,39 +85,18 @@ def train_sinr_map(
     started = wall.perf_counter()
     features = torch.as_tensor(np.asarray(features, dtype=np.float32))
     levels = torch.as_tensor(np.asarray(levels, dtype=np.int64))
-    n = len(levels)
-    if n < 2:
+    if len(levels) < 2:
         raise ValueError("training needs at least two measurements")
     generator = torch.Generator().manual_seed(seed)
-    order = torch.randperm(n, generator=generator)
-    held = min(n - 1, max(1, round(holdout * n)))
-    test_x, test_y = features[order[:held]], levels[order[:held]]
-    train_x, train_y = features[order[held:]], levels[order[held:]]
-
-    if network is None:
-        with torch.random.fork_rng():
-            torch.manual_seed(seed)
-            module = TorchSinrMapNetwork(features.shape[1], level_count)
-        module.standardize.fit(train_x)
-    else:
-        module = TorchSinrMapNetwork(network.input_size, network.levels)
-        module.assign(network)
+    (train_x, train_y), (test_x, test_y) = _held_out(features, levels, holdout, generator)
+    module = _module_to_train(network, train_x, level_count, seed)
     trained = module.inference()  # reads the module's memory: it follows every step
     optimizer = torch.optim.Adam(module.parameters(), lr=LEARNING_RATE, weight_decay=L2)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps, eta_min=FINAL_LR)
-
-    def held_out_accuracy() -> float:
-        return accuracy_of(trained, test_x.numpy(), test_y.numpy())
-
+    batches = _mini_batches(len(train_y), generator)
     accuracy, done = float("nan"), 0
-    batches = torch.randperm(len(train_y), generator=generator)
-    cursor = 0
     while done < steps:
-        if cursor + BATCH_SIZE > len(batches):  # a new epoch: reshuffle
-            batches = torch.randperm(len(train_y), generator=generator)
-            cursor = 0
-        rows = batches[cursor : cursor + BATCH_SIZE]
-        cursor += BATCH_SIZE
+        rows = next(batches)
         loss = functional.cross_entropy(module(train_x[rows]), train_y[rows])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -125,7 +104,7 @@ def train_sinr_map(
         schedule.step()
         done += 1
         if done % _EVAL_EVERY == 0 or done == steps:
-            accuracy = held_out_accuracy()
+            accuracy = accuracy_of(trained, test_x.numpy(), test_y.numpy())
             if progress is not None:
                 progress(done, accuracy)
             if target_accuracy is not None and accuracy >= target_accuracy:
@@ -135,6 +114,46 @@ def train_sinr_map(
         if stop is not None and stop():
             break
     return TrainResult(trained, accuracy, done, wall.perf_counter() - started)
+
+
+def _held_out(features: torch.Tensor, levels: torch.Tensor, holdout: float,
+              generator: torch.Generator):
+    """The rows to train on and the share ``holdout`` kept out to score the fit (at least
+    one of each), drawn with ``generator``: ((features, levels), (features, levels))."""
+    n = len(levels)
+    order = torch.randperm(n, generator=generator)
+    held = min(n - 1, max(1, round(holdout * n)))
+    kept, train = order[:held], order[held:]
+    return (features[train], levels[train]), (features[kept], levels[kept])
+
+
+def _module_to_train(network: SinrMapNetwork | None, train_x: torch.Tensor, level_count: int,
+                     seed: int) -> TorchSinrMapNetwork:
+    """A copy of ``network`` to train further, keeping its standardization; without one, a
+    fresh network (initialized from ``seed``, torch's global random state left as it was)
+    standardized on the training rows ``train_x``."""
+    if network is None:
+        with torch.random.fork_rng():
+            torch.manual_seed(seed)
+            module = TorchSinrMapNetwork(train_x.shape[1], level_count)
+        module.standardize.fit(train_x)
+    else:
+        module = TorchSinrMapNetwork(network.input_size, network.levels)
+        module.assign(network)
+    return module
+
+
+def _mini_batches(count: int, generator: torch.Generator) -> Iterator[torch.Tensor]:
+    """Rows of ``BATCH_SIZE`` out of ``count``, in an order ``generator`` reshuffles at each
+    new epoch; an epoch's rows too few for a whole batch are left out."""
+    order = torch.randperm(count, generator=generator)
+    cursor = 0
+    while True:
+        if cursor + BATCH_SIZE > len(order):  # a new epoch: reshuffle
+            order = torch.randperm(count, generator=generator)
+            cursor = 0
+        yield order[cursor : cursor + BATCH_SIZE]
+        cursor += BATCH_SIZE
 
 
 def fit_sinr_map(

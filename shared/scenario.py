@@ -276,14 +276,14 @@ class Training(_Strict):
 
 
 class OnlineMap(_Strict):
-    """The cloud's change detector (``cloud_service.sinr_mapping.ChangeDetector``)."""
+    """The cloud's change detector (``cloud_service.change_detection.ChangeDetector``)."""
 
     change_threshold: Positive  # nats of evidence one UAV's reports must pile up
     # Nats of evidence the fleet's reports must pile up against the jammer a map was
-    # corrected for before that map is withdrawn (``sinr_mapping.WithdrawalTest``).
+    # corrected for before that map is withdrawn (``jammer_withdrawal.WithdrawalTest``).
     withdrawal_threshold: Positive
     # Nats of evidence for that jammer the reports taken after its detection must give
-    # before the first map corrected for it is published (``OnlineSinrMapper._confirmed``).
+    # before the first map corrected for it is published (``WithdrawalTest.confirms``).
     confirmation_threshold: Positive
     probability_floor: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)]
     # Points the survey map (corrected by the jammer's estimate) labels for each refit: the

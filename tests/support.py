@@ -14,8 +14,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cloud_service.change_handling import RetrainConfig
 from cloud_service.process import CloudService
-from cloud_service.sinr_mapping import RetrainConfig
 from shared import bus
 from shared.events import decode_event
 from shared.jammer_messages import JammerCommand, JammerInfo, JammerReply

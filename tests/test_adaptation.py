@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cloud_service.change_detection import ChangeDetector
 from cloud_service.evaluation import transient_episodes
-from cloud_service.sinr_mapping import ChangeDetector
 from shared.events import JammerEstimated, decode_event
 from shared.jammer_messages import JammerEstimate, describe_estimate
 from shared.measurements import SpotFilter

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from cloud_service.sinr_mapping import RetrainConfig
+from cloud_service.change_handling import RetrainConfig
 from jamnav.cli import main as jamnav
 from planning.networks import load_network, save_bytes, sha256
 from planning.routes import RouteGrid

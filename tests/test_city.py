@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from cloud_service.evaluation import load_policy
-from cloud_service.jammer_estimation import positions_from_features
 from cloud_service.rollout import LookaheadController, perfect_maps
+from cloud_service.upload_positions import positions_from_features
 from shared.measurements import scenario_features
 from shared.observation import Observation
 from shared.outcomes import Outcome

@@ -11,22 +11,16 @@ import numpy as np
 import pytest
 from scipy.special import ndtr as norm_cdf
 
-from cloud_service.jammer_estimation import (
-    MAP_READING_SD_DB,
-    REPORT_SIGMA_DB,
-    JammerEstimate,
-    _prior_of_map,
+from cloud_service.estimated_jammer import JammerEstimate, posterior_hypotheses
+from cloud_service.jammer_estimation import estimate_jammer, jammer_hypotheses, locate_jammer
+from cloud_service.map_correction import (
     corrected_levels,
-    estimate_jammer,
-    fit_shadowing_sigma,
     ideal_level_probabilities,
     ideal_model_spread_db,
-    jammer_hypotheses,
-    locate_jammer,
-    positions_from_features,
-    posterior_hypotheses,
-    report_shares,
 )
+from cloud_service.no_jammer_belief import MAP_READING_SD_DB, fit_shadowing_sigma, prior_of_map
+from cloud_service.report_likelihood import REPORT_SIGMA_DB, report_shares
+from cloud_service.upload_positions import positions_from_features
 from shared.measurements import SpotFilter, scenario_features
 from shared.paper import TABLE_I_JAMMERS
 from shared.radio import JammerParams, RadioModel
@@ -302,13 +296,13 @@ def test_a_map_is_read_near_a_level_edge_and_weighed_against_the_ideal_model(sha
     edge = radio.level_edges_db[0]
     share = float(norm_cdf(-1.0))
     unsure = np.array([[share, 0.0, 1.0 - share]])
-    mean, sd = _prior_of_map(radio, np.array([edge]), 1e6, unsure)
+    mean, sd = prior_of_map(radio, np.array([edge]), 1e6, unsure)
     np.testing.assert_allclose(mean, edge + REPORT_SIGMA_DB, atol=1e-6)
     np.testing.assert_allclose(sd, MAP_READING_SD_DB, rtol=1e-6)
-    mean, sd = _prior_of_map(radio, np.array([edge]), MAP_READING_SD_DB, unsure)
+    mean, sd = prior_of_map(radio, np.array([edge]), MAP_READING_SD_DB, unsure)
     np.testing.assert_allclose(mean, edge + REPORT_SIGMA_DB / 2, atol=1e-9)
     np.testing.assert_allclose(sd, MAP_READING_SD_DB / np.sqrt(2.0), rtol=1e-9)
-    mean, sd = _prior_of_map(radio, np.array([4.0]), 2.5, np.array([[0.0, 0.0, 1.0]]))
+    mean, sd = prior_of_map(radio, np.array([4.0]), 2.5, np.array([[0.0, 0.0, 1.0]]))
     np.testing.assert_allclose([mean[0], sd[0]], [4.0, 2.5])
 
 

@@ -12,25 +12,17 @@ import torch
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from cloud_service.jammer_estimation import JammerEstimate as EstimatedJammer
-from cloud_service.jammer_estimation import (
-    JammerFit,
-    JammerHypotheses,
-    jammer_hypotheses,
-    positions_from_features,
-)
+from cloud_service.change_handling import HandledChange, RetrainConfig
+from cloud_service.estimated_jammer import JammerEstimate as EstimatedJammer
+from cloud_service.estimated_jammer import JammerHypotheses
+from cloud_service.jammer_estimation import JammerFit, jammer_hypotheses
 from cloud_service.online_map_sim import Fleet, jammer_params
 from cloud_service.process import estimate_of, map_card
 from cloud_service.simulated_measurements import labelled_batch, simulated_measurements
-from cloud_service.sinr_mapping import (
-    TARGET_ACCURACY,
-    OnlineSinrMapper,
-    PublishedWeights,
-    RetrainConfig,
-    _Change,
-)
+from cloud_service.sinr_mapping import TARGET_ACCURACY, OnlineSinrMapper, PublishedWeights
 from cloud_service.sinr_memory import SinrMemory
 from cloud_service.sinr_training import fit_sinr_map, train_sinr_map, warm_up
+from cloud_service.upload_positions import positions_from_features
 from jamnav.cli import main
 from planning.networks import (
     accuracy_of,
@@ -405,9 +397,9 @@ def test_reports_the_ideal_model_expects_are_no_evidence_where_the_map_errs(mapp
     changes = {}
     for vouching in (True, False):
         mapper, _ = _online(mapping_scenario, network, accuracy, background=False)
-        assert mapper._model_spread_db is not None and mapper._model_spread_db < 0.1
+        assert mapper.model_spread_db is not None and mapper.model_spread_db < 0.1
         if not vouching:
-            mapper._model_spread_db = None
+            mapper.report_models.model_spread_db = None
         mapper.ingest(labelled_batch(mapping_scenario, grid[worst], truth[worst],
                                      np.random.default_rng(0), time=np.arange(60) * 0.1,
                                      source="uav-0"))
@@ -542,8 +534,8 @@ def test_the_dnn_alone_waits_for_the_estimators_tries():
     """A large fleet brings ``min_samples`` in before the estimate is tried twice: the
     estimator tries on, growing its data, until ``min_tries``; then the DNN alone may go."""
     config = RetrainConfig()
-    change = _Change(start=0.0, detected_at=0.0, measurements=3 * config.min_samples,
-                     tried_at=2 * config.min_samples, tries=2)
+    change = HandledChange(start=0.0, detected_at=0.0, measurements=3 * config.min_samples,
+                           tried_at=2 * config.min_samples, tries=2)
     assert change.next_job(config) == "estimate"
     change.tried_at = change.measurements
     assert change.next_job(config) is None  # the next try waits for 25 % more data

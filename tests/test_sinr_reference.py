@@ -13,15 +13,12 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from cloud_service.jammer_estimation import (
-    NO_JAMMER,
-    OUTLIER_SHARE,
-    SinrBelief,
-    _ReportTables,
-    estimate_jammer,
-    sinr_report_probabilities,
-)
-from cloud_service.sinr_mapping import ChangeDetector
+from cloud_service.change_detection import ChangeDetector
+from cloud_service.estimated_jammer import NO_JAMMER
+from cloud_service.jammer_estimation import estimate_jammer
+from cloud_service.map_correction import sinr_report_probabilities
+from cloud_service.no_jammer_belief import SinrBelief
+from cloud_service.report_likelihood import OUTLIER_SHARE, ReportTables
 from cloud_service.sinr_reference import SinrReference, shift_evidence
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import load_scenario
@@ -96,7 +93,7 @@ def test_a_db_reports_likelihood_is_its_report_steps_interval(reporting):
     """The estimate's table of a dB report against the normal interval probability, and
     the withdrawal's probability of one, by scipy, with the outlier share."""
     radio = RadioModel(reporting, shadowed=False)
-    tables = _ReportTables(radio.level_edges_db, np.array([1.3, 2.0]), OUTLIER_SHARE, 0.5)
+    tables = ReportTables(radio.level_edges_db, np.array([1.3, 2.0]), OUTLIER_SHARE, 0.5)
     believed = np.array([-1.0, 3.0, 10.0])
     reported = np.array([-2.5, 3.0, -30.0])
     rows = np.array([0, 1, 1])
