@@ -48,7 +48,7 @@ from shared.measurements import (
 )
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting
-from shared.scenario import MAX_UAVS, Scenario
+from shared.scenario import MAX_UAVS, Jammer, Scenario
 from shared.shipped import value_net_for
 from shared.survey_maps import NoSurveyMapError, sinr_map_for
 from world_sim.core import VectorWorld
@@ -241,7 +241,8 @@ def _check_request(scenario: Scenario, method: str, episodes: int, seed: int,
         _check_integer("uavs", uavs, 1, MAX_UAVS)
     if swap_every is not None:
         _check_integer("swap_every", swap_every, 1)
-    if jammer is not None and not isinstance(jammer, JammerSetting | tuple):
+    if jammer is not None and not isinstance(jammer, JammerSetting) and not (
+            isinstance(jammer, tuple) and all(isinstance(one, Jammer) for one in jammer)):
         raise EvaluationError(f"jammer {jammer!r}: expected a JammerSetting(x, y, power_w), a "
                               "scenario's jammers or None")
 

@@ -91,7 +91,7 @@ def test_the_console_shows_the_live_system_and_moves_the_jammer(supervisor, caps
         """What the world says, not the console."""
         code = jamnav(["jammer", "show", *credentials])
         out = capsys.readouterr().out
-        return json.loads(out)["jammer"] if code == 0 else "unknown"
+        return json.loads(out)["jammers"] if code == 0 else "unknown"
 
     wait_until(lambda: http(f"{base}api/state?token={token}")[1]["episode"] is not None, 60,
                "the world's first state at the console")
@@ -103,7 +103,7 @@ def test_the_console_shows_the_live_system_and_moves_the_jammer(supervisor, caps
     # A few kB of nested brackets exhaust the JSON decoder's stack: a 400, not a 500.
     status, reply = http(f"{base}api/jammer?token={token}", b"[" * 3000 + b"]" * 3000)
     assert status == 400 and reply["error"] == "JSON nested too deeply"
-    assert jammer_in_force() is None
+    assert jammer_in_force() == []
 
     with sync_playwright() as playwright:
         browser = chromium.launch(playwright)
@@ -117,14 +117,16 @@ def test_the_console_shows_the_live_system_and_moves_the_jammer(supervisor, caps
         assert before != after
         assert [(u["x"], u["y"]) for u in positions["uavs"]] != [
             (u["x"], u["y"]) for u in moved["uavs"]]
-        assert len(moved["uavs"]) == 4 and moved["jammer"] is None
+        assert len(moved["uavs"]) == 4 and moved["jammers"] == []
 
         page.fill("#power", "5")
         box = canvas.bounding_box()
         canvas.click(position={"x": box["width"] / 2, "y": box["height"] / 2})  # (0, 0)
-        wait_until(lambda: http(f"{base}api/state?token={token}")[1]["jammer"] == {
-            "x": 0.0, "y": 0.0, "power_w": 5.0}, 10, "the jammer at the console")
-        assert jammer_in_force() == {"x": 0.0, "y": 0.0, "power_w": 5.0, "height_m": 30.0}
+        wait_until(lambda: http(f"{base}api/state?token={token}")[1]["jammers"] == [{
+            "id": 0, "x": 0.0, "y": 0.0, "power_w": 5.0, "on": True, "path": None}], 10,
+                   "the jammer at the console")
+        assert jammer_in_force() == [{"id": 0, "x": 0.0, "y": 0.0, "power_w": 5.0,
+                                      "height_m": 30.0, "path": None, "schedule": None}]
         page.wait_for_selector('#timeline li[data-kind="jammer_changed"]')
         page.wait_for_selector('#timeline li[data-kind="change_detected"]', timeout=30_000)
         published = page.wait_for_selector('#timeline li[data-kind="sinr_weights_published"]',
@@ -137,6 +139,21 @@ def test_the_console_shows_the_live_system_and_moves_the_jammer(supervisor, caps
                 < kinds.index("jammer_changed"))
         page.wait_for_function(f"document.getElementById('served-version').textContent"
                                f" === '(v{version})'")
+
+        # A drag moves the jammer; a click elsewhere adds a second; its button removes it.
+        centre_x, centre_y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+        page.mouse.move(centre_x, centre_y)
+        page.mouse.down()
+        page.mouse.move(centre_x + 40, centre_y - 40, steps=5)
+        page.mouse.up()
+        wait_until(lambda: [(j["x"] > 1, j["y"] > 1) for j in jammer_in_force()] == [
+            (True, True)], 10, "the jammer dragged north-east")
+        canvas.click(position={"x": box["width"] / 4, "y": box["height"] / 4})
+        wait_until(lambda: [(j["id"], j["x"] < -1, j["y"] > 1) for j in jammer_in_force()][1:]
+                   == [(1, True, True)], 10, "a second jammer north-west")
+        page.click('#jammer-list li[data-id="1"] button')
+        wait_until(lambda: [j["id"] for j in jammer_in_force()] == [0], 10,
+                   "the second jammer removed")
         browser.close()
 
     # A console that dies is restarted like any child, at the same address, with the same

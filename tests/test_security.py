@@ -245,7 +245,7 @@ def test_up_secure_flies_like_eval_and_needs_the_credentials(supervisor, capsys,
     assert stat.S_IMODE(os.stat(credentials).st_mode) == 0o600
     code, out, _ = run_cli(capsys, "jammer", "show", "--credentials", credentials,
                            "--endpoint", endpoint)
-    assert code == 0 and json.loads(out)["jammer"]["x"] == 0.0
+    assert code == 0 and [jammer["x"] for jammer in json.loads(out)["jammers"]] == [0.0]
     # A jammer a micrometre higher than the one in force (30 m) is a change, which goes the
     # whole way: world -> event -> cloud -> new true map -> every agent; but no level can
     # tell it apart (the SINR moves by under 1e-6 dB), so no outcome changes. Setting the

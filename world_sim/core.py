@@ -208,6 +208,8 @@ class VectorWorld:
         of any they had; placed where they are at each environment's time into its episode."""
         if len(jammers) > MAX_JAMMERS:
             raise ValueError(f"{len(jammers)} jammers: at most {MAX_JAMMERS}")
+        for jammer in jammers:
+            _check_jammer(JammerParams(jammer.x, jammer.y, jammer.power_w, jammer.height_m))
         if len(jammers) > self.jammer_x.shape[1]:
             self._widen_jammer_slots(len(jammers))
         env_ids = self._env_list(env_ids)

@@ -23,9 +23,11 @@ def jammer_set(scenario: Scenario, jammers: JammerSetting | JammerSet | None) ->
     if jammers is None:
         return ()
     if isinstance(jammers, JammerSetting):
-        return (Jammer(x=jammers.x, y=jammers.y, power_w=jammers.power_w,
-                       height_m=scenario.jammer.height_m,
-                       efficiency_db=scenario.jammer.efficiency_db),)
+        # Unchecked here: the world refuses a jammer that is not finite where every caller's
+        # enters it (VectorWorld.set_jammers), with one line.
+        return (Jammer.model_construct(x=jammers.x, y=jammers.y, power_w=jammers.power_w,
+                                       height_m=scenario.jammer.height_m,
+                                       efficiency_db=scenario.jammer.efficiency_db),)
     return tuple(jammers)
 
 
