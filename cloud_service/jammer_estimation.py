@@ -20,6 +20,7 @@ spread wider than the world's reads the power wrong (``_refitted``).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -34,7 +35,7 @@ from cloud_service.jammer_evidence import (
 from cloud_service.no_jammer_belief import SinrBelief, sinr_beliefs
 from cloud_service.report_likelihood import OUTLIER_SHARE, REPORT_SIGMA_DB
 from shared.radio import RadioModel
-from shared.scenario import Scenario
+from shared.scenario import MAX_JAMMERS, Scenario
 
 # A converged estimate is refitted with the report spread that explains the uploads best among
 # these (maximum likelihood); whether it converged is decided at REPORT_SIGMA_DB, and so are
@@ -193,6 +194,88 @@ def jammer_hypotheses(
     return _hypotheses(scenario, searched, mass, most, presence_llr)
 
 
+# A jammer taken as known while the next is searched for: position (2,), effective power dBW.
+Placed = tuple[np.ndarray, float]
+# A jammer's parameters, for BIC's penalty on one jammer more: its x, y and power.
+JAMMER_PARAMETERS = 3
+PLACING_ROUNDS = 4  # of placing each jammer again with the others known (``_placed_again``)
+
+
+def estimate_jammers(
+    scenario: Scenario,
+    xy: np.ndarray,
+    levels: np.ndarray,
+    *,
+    reported_db: np.ndarray | None = None,
+    no_jammer_levels: np.ndarray | None = None,
+    no_jammer_db: SinrBelief | None = None,
+    most: int = MAX_JAMMERS,
+    report_sigma_db: float = REPORT_SIGMA_DB,
+) -> list[JammerEstimate] | None:
+    """How many jammers, from none to ``most``, the uploads show, and each one; None when
+    they cannot tell yet.
+
+    Count: whether there is any is ``estimate_jammer``'s decision. Then, greedily, one more
+    is searched for with those found taken as known (their interference adds in Eq. (3)),
+    and kept while it raises the weighted log-likelihood by more than BIC's penalty,
+    ``JAMMER_PARAMETERS`` / 2 ln n over the n reports that count as independent; after each
+    is added, every earlier one is placed again with all the others known (the first was
+    placed as if alone, and read the others' losses as its own). Placing means the coarse
+    search's best hypothesis. Each: one jammer is ``estimate_jammer``'s estimate; several
+    are each estimated with the others known, and must each converge as ``estimate_jammer``
+    asks (else None); each one's log-likelihood ratio is then against the others alone."""
+    reports = Reports.of(scenario, xy, levels, reported_db)
+    reading = _Reading(no_jammer_levels, no_jammer_db)
+    searched = _coarse_search(scenario, reports, reading, report_sigma_db)
+    if searched is None:
+        return None
+    if searched.llr.max() < PRESENCE_LLR or most == 1:
+        alone = _decide(scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M)
+        return None if alone is None else [_refitted(scenario, searched, alone, reports,
+                                                     reading)] if alone.present else []
+    penalty = 0.5 * JAMMER_PARAMETERS * math.log(max(searched.evidence.effective_count, 2.0))
+    placed = [_best_placed(searched)]
+    while len(placed) < most:
+        more = _coarse_search(scenario, reports, reading, report_sigma_db, placed)
+        if more.llr.max() <= penalty:
+            break
+        placed = _placed_again(scenario, reports, reading, report_sigma_db,
+                               [*placed, _best_placed(more)])
+    if len(placed) == 1:
+        alone = _decide(scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M)
+        return None if alone is None else [_refitted(scenario, searched, alone, reports,
+                                                     reading)]
+    estimates = []
+    for index in range(len(placed)):
+        given = _coarse_search(scenario, reports, reading, report_sigma_db,
+                               placed[:index] + placed[index + 1:])
+        estimate = _decide(scenario, given, penalty, EXCLUSION_LLR, MAX_POSITION_SD_M)
+        if estimate is None or not estimate.present:
+            return None
+        estimates.append(estimate)
+    return estimates
+
+
+def _best_placed(searched: _Searched) -> Placed:
+    """The coarse search's best hypothesis."""
+    position, power = np.unravel_index(searched.llr.argmax(), searched.llr.shape)
+    return searched.search.positions[position], float(searched.search.powers_dbw[power])
+
+
+def _placed_again(scenario: Scenario, reports: Reports, reading: _Reading,
+                  report_sigma_db: float, placed: list[Placed]) -> list[Placed]:
+    """Each of ``placed`` placed again, in turn, with all the others known, round after
+    round until a round moves none (at most ``PLACING_ROUNDS``)."""
+    for _ in range(PLACING_ROUNDS):
+        before = [(tuple(position), power) for position, power in placed]
+        for index in range(len(placed)):
+            placed[index] = _best_placed(_coarse_search(
+                scenario, reports, reading, report_sigma_db, placed[:index] + placed[index + 1:]))
+        if [(tuple(position), power) for position, power in placed] == before:
+            break
+    return placed
+
+
 class JammerFit(NamedTuple):
     estimate: JammerEstimate | None  # as ``estimate_jammer``
     hypotheses: JammerHypotheses | None  # as ``jammer_hypotheses``, when no estimate converged
@@ -265,9 +348,10 @@ class _Reading(NamedTuple):
 
 
 def _coarse_search(scenario: Scenario, reports: Reports, reading: _Reading,
-                   report_sigma_db: float) -> _Searched | None:
+                   report_sigma_db: float, placed: Sequence[Placed] = ()) -> _Searched | None:
     """The evidence of the located rows, the coarse search and its LLRs (positions x
-    powers); None with fewer than ``reading.min_measurements`` located rows."""
+    powers) of one jammer more than ``placed``; None with fewer than
+    ``reading.min_measurements`` located rows."""
     located = np.isfinite(reports.xy).all(axis=1)
     reports = reports.take(located)
     no_jammer_levels, no_jammer_db = reading.no_jammer_levels, reading.no_jammer_db
@@ -284,7 +368,7 @@ def _coarse_search(scenario: Scenario, reports: Reports, reading: _Reading,
         independence_weights(reports.xy, reading.independent_spacing_m),
         sinr_beliefs(radio, reports.xy, no_jammer_levels, reading.shadowing_sigma_db,
                      no_jammer_db),
-        report_sigma_db, reading.outlier_share, np.ptp(search.powers_dbw))
+        report_sigma_db, reading.outlier_share, np.ptp(search.powers_dbw), placed)
     return _Searched(evidence, search,
                      evidence.log_likelihood_ratios(search.positions, search.powers_dbw))
 

@@ -20,6 +20,7 @@ claim the certainty of thousands of independent reports.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -77,7 +78,11 @@ class JammerEvidence:
     def __init__(
         self, radio: RadioModel, jammer_height_m: float, reports: Reports, weights: np.ndarray,
         belief: SinrBelief, report_sigma_db: float, outlier_share: float, power_span_db: float,
+        placed: Sequence[tuple[np.ndarray, float]] = (),
     ):
+        """``placed``: jammers taken as known, each (position (2,), effective power dBW):
+        the evidence is then for one jammer more, against those alone (``no_jammer`` is
+        their log-likelihood), as their interference adds to the new one's in Eq. (3)."""
         xy, levels, reported_db = reports.xy, reports.levels, reports.sinr_db
         self.xy = xy
         self.report_sigma_db = report_sigma_db
@@ -88,17 +93,32 @@ class JammerEvidence:
         self.ratio_low_db = _RATIO_RANGE_DB[0] - power_span_db
         ratios_db = np.arange(self.ratio_low_db, _RATIO_RANGE_DB[1] + power_span_db,
                               _RATIO_STEP_DB)
-        loss_db = 10.0 * np.log10(1.0 + 10.0 ** (ratios_db / 10.0))  # SINR lost to the jammer
+        # 1 + the placed jammers' power over the interference plus noise, per measurement;
+        # without any, one loss curve serves every measurement.
+        base = 1.0 if not placed else 1.0 + np.sum(
+            [10.0 ** (self.ratios_db(position[None], power_dbw)[0] / 10.0)
+             for position, power_dbw in placed], axis=0)[:, None]
+        loss_db = 10.0 * np.log10(base + 10.0 ** (ratios_db / 10.0))  # SINR lost to jamming
         tables = ReportTables(radio.level_edges_db, np.hypot(belief.sd_db, report_sigma_db),
                               outlier_share, reports.step_db)
         rows = np.arange(len(xy))
         table = tables.log_probability(belief.mean_db[:, None] - loss_db, levels[:, None],
                                        rows[:, None], reported_db[:, None])
         self.table = (weights[:, None] * table).astype(np.float32).ravel()
+        self.effective_count = float(weights.sum())  # reports that count as independent
         self.ratio_count = len(ratios_db)
         self.row_start = (rows * self.ratio_count).astype(np.int32)
-        self.no_jammer = float(weights @ tables.log_probability(belief.mean_db, levels, rows,
-                                                                reported_db))
+        placed_loss_db = 10.0 * np.log10(np.reshape(base, -1))
+        self.no_jammer = float(weights @ tables.log_probability(belief.mean_db - placed_loss_db,
+                                                                levels, rows, reported_db))
+
+    def ratios_db(self, positions: np.ndarray, power_dbw: float | np.ndarray) -> np.ndarray:
+        """r of a jammer at each of ``positions`` (H, 2) with effective power ``power_dbw``
+        at every measurement: (H, n) dB."""
+        offset = positions[:, None, :] - self.xy
+        slant_sq = (offset * offset).sum(-1) + self.gap_m**2
+        return (np.asarray(power_dbw)[..., None] + 10.0 * math.log10(self.gap_m)
+                - self.slope_db * np.log10(slant_sq) - self.interference_db)
 
     def log_likelihood_ratios(self, positions: np.ndarray, powers_dbw: np.ndarray) -> np.ndarray:
         """Log-likelihood of a jammer at each of ``positions`` (H, 2) with each effective
@@ -110,10 +130,7 @@ class JammerEvidence:
         per_block = max(1, _BLOCK_ELEMENTS // (len(powers_dbw) * len(self.xy)))
         for start in range(0, len(positions), per_block):
             block = positions[start : start + per_block]
-            offset = block[:, None, :] - self.xy
-            slant_sq = (offset * offset).sum(-1) + self.gap_m**2
-            gain_db = (10.0 * math.log10(self.gap_m) - self.slope_db * np.log10(slant_sq)
-                       - self.interference_db)
+            gain_db = self.ratios_db(block, 0.0)
             # Beyond the tables the likelihood no longer changes with r: clipping is exact.
             lowest = np.clip(np.rint((gain_db - lowest_at) / _RATIO_STEP_DB),
                              0, self.ratio_count - 1 - power_steps.max()).astype(np.int32)
