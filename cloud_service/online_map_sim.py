@@ -26,7 +26,7 @@ from cloud_service.sinr_memory import SinrMemory
 from planning.networks import SinrMapNetwork, predict_levels
 from shared.measurements import MeasurementBatch, MeasurementSpec, SpotFilter, scenario_features
 from shared.paper import TABLE_I_JAMMERS, JammerSetting, jammer_params
-from shared.radio import JammerParams, RadioModel
+from shared.radio import Jammers, RadioModel
 from shared.scenario import Scenario
 
 DEFAULT_UAVS = 20  # ~200 reports a step: a busy sky, without making the figure a long run
@@ -63,7 +63,7 @@ class Fleet:
                                  self.position + heading * self.step_length)
         self.waypoint[arrived] = self._draw(int(arrived.sum()))
 
-    def uploads(self, jammer: JammerParams | None, time: float, step: int) -> MeasurementBatch:
+    def uploads(self, jammer: Jammers, time: float, step: int) -> MeasurementBatch:
         """What the UAVs report along their last step and keep, stamped along the step."""
         samples = self.scenario.uav.measurements_per_step
         share = np.arange(1, samples + 1) / samples

@@ -10,7 +10,7 @@ import pytest
 from cloud_service.process import build_parser as cloud_parser
 from jamnav.cli import main
 from jamnav.supervisor import Child, Supervisor, UpConfig
-from shared.jammer_messages import JammerInfo
+from shared.jammer_messages import JammerInfo, initial_jammers
 from tests.test_radio import reference_sinr_db
 from world_sim.process import build_parser as world_parser
 
@@ -59,4 +59,5 @@ def test_up_checks_and_hands_a_negative_jammer_to_its_children(capsys, tmp_path,
     for role, parser in (("world", world_parser()), ("cloud", cloud_parser())):
         argv = supervisor._argv(Child(role, 0, tmp_path / "log"))
         parsed = parser.parse_args(argv[argv.index("-m") + 2:])
-        assert JammerInfo.parse(parsed.jammer, 0.0) == want
+        assert initial_jammers(scenario, parsed.jammer, parsed.jammers, parsed.no_jammer) == (
+            want,)
