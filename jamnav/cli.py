@@ -34,6 +34,7 @@ COMMANDS = (
     cli_training.add_fit_sinr_command,
     cli_experiments.add_online_map_command,
     cli_experiments.add_cloud_latency_command,
+    cli_experiments.add_jammers_table_command,
     cli_up.add_chaos_command,
     cli_up.add_up_command,
     cli_runtime.add_console_command,

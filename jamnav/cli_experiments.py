@@ -307,6 +307,41 @@ def cmd_cloud_latency(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_jammers_table(args: argparse.Namespace) -> int:
+    import os
+
+    from cloud_service.evaluation import EvaluationError
+    from cloud_service.scenario_tables import METHODS, jammer_table_runs, write_jammer_table
+
+    check_range("--episodes", args.episodes, 1)
+    check_range("--seeds", args.seeds, 1, 100)
+    check_range("--jobs", args.jobs, 1, 64)
+    out = output_path("--out", args.out, directory=True)
+    for name in args.scenarios:  # every one readable and flyable before hours of runs
+        scenario = scenario_argument(argparse.Namespace(scenario=name))
+        check_fleet(f"scenario {name}", scenario.missions.uav_count, scenario, 0)
+    runs = len(args.scenarios) * len(METHODS) * args.seeds
+    command = (f"jamnav jammers-table {' '.join(args.scenarios)} --seeds {args.seeds} "
+               f"--episodes {args.episodes}")  # what the table holds, wherever it was run
+    done = 0
+
+    def on_run(run: dict) -> None:
+        nonlocal done
+        done += 1
+        print(f"jammers-table: run {done}/{runs}: {run['scenario']} {run['method']} seed "
+              f"{run['seed']}: success {run['success_rate']:.1%}", file=sys.stderr, flush=True)
+
+    try:
+        result = jammer_table_runs(args.scenarios, args.seeds, args.episodes,
+                                   args.jobs or os.cpu_count() or 1, on_run)
+    except EvaluationError as exc:
+        raise UsageError(f"jammers-table: {exc}") from None
+    md_path, json_path = write_jammer_table(result, out, command)
+    print(md_path.read_text(encoding="utf-8"))
+    print(f"wrote {md_path} and {json_path}", file=sys.stderr)
+    return 0
+
+
 # -- parsers ------------------------------------------------------------------------------------
 def add_eval_command(commands) -> None:
     evaluation = commands.add_parser("eval", help="fly seeded episodes in-process and score them")
@@ -407,3 +442,20 @@ def add_cloud_latency_command(commands) -> None:
                          help="where cloud_latency_<scenario>.{json,md,png} go (default: "
                               "results)")
     latency.set_defaults(handler=cmd_cloud_latency)
+
+
+def add_jammers_table_command(commands) -> None:
+    table = commands.add_parser(
+        "jammers-table", help="scenarios' own jammers: the online, perfect and outdated maps "
+                              "over seeds (table)")
+    table.add_argument("scenarios", nargs="+", metavar="SCENARIO",
+                       help="scenario names or TOML files, each flown with the jammers it lists "
+                            "(e.g. two-jammers convoy)")
+    table.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
+    table.add_argument("--episodes", type=int, default=400,
+                       help="episodes per scenario, map and seed (default 400)")
+    table.add_argument("--jobs", type=int, default=None,
+                       help="runs flown at once, each in its own process (default: the CPUs)")
+    table.add_argument("--out", default="results/jammers", metavar="DIR",
+                       help="where jammers_table.{md,json} go (default: results/jammers)")
+    table.set_defaults(handler=cmd_jammers_table)

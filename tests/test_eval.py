@@ -14,6 +14,7 @@ from jamnav.cli import main
 from shared.paper import TABLE_I_JAMMERS, JammerSetting
 from shared.scenario import load_scenario
 from shared.shipped import value_net_path
+from world_sim.jammers import scenario_jammers
 
 
 def run_json(capsys, *argv):
@@ -166,3 +167,31 @@ def test_a_published_map_flies_after_the_clouds_latency(scenario, latency_s):
     delay = math.ceil(latency_s / scenario.timing.step_s) * scenario.timing.step_s
     flown = report["flight_seconds"]
     assert {v: t + delay for v, t in published.items() if t + delay < flown} == in_service
+
+
+def test_the_jammers_table_flies_each_scenarios_own_jammers_as_eval_does(capsys, tmp_path):
+    """Each run of the table is the scenario's own jammers flown as ``evaluate`` flies them:
+    two still jammers here, and the convoy's, which drives."""
+    code = main(["jammers-table", "two-jammers", "convoy", "--seeds", "1", "--episodes", "2",
+                 "--jobs", "2", "--out", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert code == 0
+    runs = json.loads((tmp_path / "jammers_table.json").read_text())["runs"]
+    assert [(run["scenario"], run["method"]) for run in runs] == [
+        (name, method) for name in ("two-jammers", "convoy")
+        for method in ("proposed", "perfect", "outdated")]
+    for run in runs[1::3]:  # the perfect maps': quick to fly again here
+        scenario = load_scenario(run["scenario"])
+        again = evaluate(scenario, "perfect", 2, 0, scenario_jammers(scenario))
+        assert run["success_rate"] == again["success_rate"]
+        assert again["jammers"] == [jammer.model_dump(mode="json", exclude={
+            "enabled", "efficiency_db"}, exclude_none=True) for jammer in scenario.jammers]
+    table = (tmp_path / "jammers_table.md").read_text()
+    assert "| convoy | outdated |" in table and out == table + "\n"
+    assert "`jamnav jammers-table two-jammers convoy --seeds 1 --episodes 2`" in table
+
+
+def test_the_jammers_table_refuses_what_it_cannot_fly_in_one_line(capsys, tmp_path):
+    assert main(["jammers-table", "no-such-scenario", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "no such file" in err and err.count("\n") == 1
