@@ -312,6 +312,7 @@ def cmd_jammers_table(args: argparse.Namespace) -> int:
 
     from cloud_service.evaluation import EvaluationError
     from cloud_service.scenario_tables import METHODS, jammer_table_runs, write_jammer_table
+    from shared.survey_maps import NoSurveyMapError, sinr_map_for
 
     check_range("--episodes", args.episodes, 1)
     check_range("--seeds", args.seeds, 1, 100)
@@ -320,6 +321,10 @@ def cmd_jammers_table(args: argparse.Namespace) -> int:
     for name in args.scenarios:  # every one readable and flyable before hours of runs
         scenario = scenario_argument(argparse.Namespace(scenario=name))
         check_fleet(f"scenario {name}", scenario.missions.uav_count, scenario, 0)
+        try:  # the online map starts from the survey map of the scenario's radio world
+            sinr_map_for(scenario)
+        except NoSurveyMapError as exc:
+            raise UsageError(f"scenario {name}: {exc}") from None
     runs = len(args.scenarios) * len(METHODS) * args.seeds
     command = (f"jamnav jammers-table {' '.join(args.scenarios)} --seeds {args.seeds} "
                f"--episodes {args.episodes}")  # what the table holds, wherever it was run

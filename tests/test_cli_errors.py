@@ -25,6 +25,7 @@ HEAVY = [
     ("shared.plots", "save_coverage_map"),
     ("shared.plots", "plot_reward_curve"),
     ("jamnav.supervisor", "up"),
+    ("cloud_service.scenario_tables", "jammer_table_runs"),
 ]
 
 
@@ -208,6 +209,19 @@ CASES = [
     (["jammer", "set", "--x", "0", "--y", "0"], 2),
     (["jammer", "off", "--endpoint", "nonsense"], 2),
     (["jammer"], 2),
+    (["jammer", "add", "0,0"], 2),
+    (["jammer", "move", "7", "0,0"], 2),
+    (["jammer", "move", "1", "0"], 2),
+    (["jammer", "move", "one", "0,0"], 2),
+    (["jammer", "remove"], 2),
+    (["jammer", "remove", "-1"], 2),
+    (["jammer", "off", "9"], 2),
+    (["up", "--scenario", "convoy", "--map", "perfect"], 2),
+    (["jammers-table"], 2),
+    (["jammers-table", "two-jammers", "--episodes", "0"], 2),
+    (["jammers-table", "two-jammers", "--jobs", "0"], 2),
+    (["jammers-table", "two-jammers", "--out", "{file}"], 2),
+    (["jammers-table", "{other_world}", "--seeds", "1", "--episodes", "1"], 2),
     (["status", "--endpoint", "nonsense"], 2),
     (["status", "--prefix", ""], 2),
     (["status", "--endpoint", "tcp/127.0.0.1:{port}"], 1),
