@@ -21,6 +21,10 @@ The online service (``python -m cloud_service.process``, started by ``jamnav up`
   point), ``upload_positions`` (where an upload was taken, from its features) and
   ``estimated_jammer`` (the jammer as the cloud knows it).
 - ``map_correction``: the no-jammer map corrected with an estimated jammer.
+- ``jammer_tracking``: a moving jammer followed through the estimates of successive windows
+  of uploads (a constant-velocity Kalman filter).
+- ``scenario_tables`` (offline): the online, perfect and outdated maps under a scenario's own
+  jammers, over seeds (``jamnav jammers-table``).
 - ``sinr_training``: fitting a SINR-mapping network (torch, loaded on first use; ``jamnav
   fit-sinr`` fits the survey maps with it too).
 

@@ -1,0 +1,113 @@
+"""Following a jammer that moves: each window of recent uploads gives an estimate of where it
+is (``estimate_jammer``), and a constant-velocity Kalman filter joins them into a track, its
+position and velocity with their uncertainty (``JammerTrack``); ``track_jammer`` runs one over
+time-stamped uploads."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from cloud_service.estimated_jammer import JammerEstimate
+from cloud_service.jammer_estimation import estimate_jammer
+from shared.scenario import Scenario
+
+# How fast a vehicle may change its velocity, the filter's process noise (m/s^2, standard
+# deviation of a white-noise acceleration): a convoy keeping its pace. Larger, the track
+# follows each window's error; a vehicle that turns is followed a few windows late.
+ACCELERATION_SD_MPS2 = 0.2
+# A window's estimate is never trusted to better than this (m): the search's fine grid.
+MIN_POSITION_SD_M = 0.5
+WINDOW_S = 5.0  # the uploads each estimate reads: a jammer at 5 m/s moves 25 m in it
+
+
+class TrackedJammer(NamedTuple):
+    t: float
+    x: float
+    y: float
+    vx: float
+    vy: float
+    sd_x_m: float
+    sd_y_m: float
+    sd_vx_mps: float
+    sd_vy_mps: float
+    power_w: float  # the latest window's
+
+
+class JammerTrack:
+    """A constant-velocity Kalman filter on (x, y, vx, vy): a window's estimate is a measurement
+    of the position at the window's middle (where the jammer was, on average, while the
+    window's uploads were taken), with the estimate's own posterior covariance; between two,
+    the velocity may drift by ``acceleration_sd`` (white-noise acceleration)."""
+
+    def __init__(self, acceleration_sd: float = ACCELERATION_SD_MPS2):
+        self.acceleration_sd = acceleration_sd
+        self.t: float | None = None
+        self.state = np.zeros(4)
+        self.covariance = np.zeros((4, 4))
+        self.power_w = 0.0
+
+    def update(self, t: float, estimate: JammerEstimate) -> TrackedJammer:
+        """Take a present ``estimate`` of the jammer's position at time ``t``."""
+        measured = np.array([estimate.x, estimate.y])
+        cov_xy = estimate.cov_xy_m2 or 0.0
+        noise = np.array([[max(estimate.sd_x_m, MIN_POSITION_SD_M) ** 2, cov_xy],
+                          [cov_xy, max(estimate.sd_y_m, MIN_POSITION_SD_M) ** 2]])
+        if self.t is None:  # the first: where it is; its velocity, any a vehicle may have
+            self.state = np.concatenate([measured, [0.0, 0.0]])
+            self.covariance = np.zeros((4, 4))
+            self.covariance[:2, :2] = noise
+            self.covariance[2:, 2:] = np.eye(2) * _UNKNOWN_SPEED_MPS**2
+        else:
+            self._predict(t - self.t)
+            gain = self.covariance[:, :2] @ np.linalg.inv(self.covariance[:2, :2] + noise)
+            self.state = self.state + gain @ (measured - self.state[:2])
+            self.covariance = self.covariance - gain @ self.covariance[:2, :]
+        self.t, self.power_w = t, float(estimate.power_w)
+        return self.now()
+
+    def _predict(self, dt: float) -> None:
+        move = np.eye(4)
+        move[0, 2] = move[1, 3] = dt
+        # White-noise acceleration over dt, on each axis: [[dt^3/3, dt^2/2], [dt^2/2, dt]] q.
+        per_axis = self.acceleration_sd**2 * np.array([[dt**3 / 3.0, dt**2 / 2.0],
+                                                       [dt**2 / 2.0, dt]])
+        drift = np.zeros((4, 4))
+        drift[np.ix_([0, 2], [0, 2])] = per_axis
+        drift[np.ix_([1, 3], [1, 3])] = per_axis
+        self.state = move @ self.state
+        self.covariance = move @ self.covariance @ move.T + drift
+
+    def now(self) -> TrackedJammer:
+        sd = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+        return TrackedJammer(self.t, *map(float, self.state), *map(float, sd), self.power_w)
+
+    def at(self, t: float) -> tuple[float, float]:
+        """Where the track puts the jammer at a later time ``t``."""
+        ahead = t - self.t
+        return (float(self.state[0] + ahead * self.state[2]),
+                float(self.state[1] + ahead * self.state[3]))
+
+
+_UNKNOWN_SPEED_MPS = 10.0  # the first estimate's velocity: anything a vehicle on a road does
+
+
+def track_jammer(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, times: np.ndarray,
+                 no_jammer_levels: np.ndarray, *, window_s: float = WINDOW_S,
+                 reported_db: np.ndarray | None = None) -> list[TrackedJammer]:
+    """The track of one moving jammer through uploads at ``xy`` with ``levels`` (and SINRs
+    ``reported_db``) taken at ``times``: the uploads of each ``window_s`` seconds in turn are
+    estimated (``estimate_jammer``), and each estimate that converges updates the track at
+    the window's middle; one entry per update. The windows do not overlap: the filter takes
+    each estimate's error as its own, which overlapping windows would share."""
+    track, out = JammerTrack(), []
+    for end in np.arange(times.min() + window_s, times.max() + 1e-9, window_s).tolist():
+        rows = (times > end - window_s) & (times <= end)
+        estimate = estimate_jammer(
+            scenario, xy[rows], levels[rows], no_jammer_levels=no_jammer_levels[rows],
+            reported_db=None if reported_db is None else reported_db[rows])
+        if estimate is not None and estimate.present and math.isfinite(estimate.x):
+            out.append(track.update(end - window_s / 2.0, estimate))
+    return out
