@@ -427,6 +427,13 @@ def add_online_map_command(commands) -> None:
     online.set_defaults(handler=cmd_online_map)
 
 
+def _add_seeds_and_episodes(parser: argparse.ArgumentParser, episodes: int, per: str) -> None:
+    """The runs of a sweep over seeds 0..N-1, of ``episodes`` episodes each by default."""
+    parser.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
+    parser.add_argument("--episodes", type=int, default=episodes,
+                        help=f"episodes per {per} (default {episodes})")
+
+
 def add_cloud_latency_command(commands) -> None:
     latency = commands.add_parser(
         "cloud-latency", help="success on the online map against the cloud's latency, the "
@@ -436,9 +443,7 @@ def add_cloud_latency_command(commands) -> None:
     latency.add_argument("--latencies", default="0,1,2,5,10,30,60", metavar="S,S,...",
                          help="cloud latencies to fly, seconds of flight (default "
                               "0,1,2,5,10,30,60)")
-    latency.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
-    latency.add_argument("--episodes", type=int, default=200,
-                         help="episodes per seed and latency (default 200)")
+    _add_seeds_and_episodes(latency, 200, "seed and latency")
     latency.add_argument("--swap-every", type=int, default=10, metavar="K",
                          help="move the jammer to a fresh random setting every K episodes "
                               "(default 10)")
@@ -456,9 +461,7 @@ def add_jammers_table_command(commands) -> None:
     table.add_argument("scenarios", nargs="+", metavar="SCENARIO",
                        help="scenario names or TOML files, each flown with the jammers it lists "
                             "(e.g. two-jammers convoy)")
-    table.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
-    table.add_argument("--episodes", type=int, default=400,
-                       help="episodes per scenario, map and seed (default 400)")
+    _add_seeds_and_episodes(table, 400, "scenario, map and seed")
     table.add_argument("--jobs", type=int, default=None,
                        help="runs flown at once, each in its own process (default: the CPUs)")
     table.add_argument("--out", default="results/jammers", metavar="DIR",
