@@ -61,6 +61,11 @@ from shared.world_messages import WorldState
 
 ROOT = Path(__file__).resolve().parent.parent
 STOP_GRACE_S = 10.0
+# The recorder writes the file only as it closes it (its summary, and the chunks it still
+# holds), from a thread that yields to the system it records (RECORDER_NICENESS): on a
+# machine busy with other work it may need longer than STOP_GRACE_S, and killed, it leaves
+# an empty file (one did so under the whole test suite).
+RECORDER_STOP_GRACE_S = 60.0
 # A child that dies more than RESTART_LIMIT times in a row, each within STEADY_S of its start,
 # would die again: the supervisor gives up. One that ran a while is restarted however often.
 RESTART_LIMIT = 5
@@ -302,17 +307,17 @@ class Supervisor:
             self._launch(child)
         return True
 
-    def _stop_children(self, roles: tuple[str, ...]) -> None:
+    def _stop_children(self, roles: tuple[str, ...], grace_s: float = STOP_GRACE_S) -> None:
         chosen = [c for c in self.children.values() if c.role in roles]
         for child in chosen:
             if child.process.poll() is None:
                 child.process.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + STOP_GRACE_S
+        deadline = time.monotonic() + grace_s
         for child in chosen:
             try:
                 child.process.wait(max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                self._say(f"{child.name} did not stop in {STOP_GRACE_S:g} s; killing it")
+                self._say(f"{child.name} did not stop in {grace_s:g} s; killing it")
                 child.process.kill()
                 child.process.wait()
 
@@ -533,7 +538,7 @@ class Supervisor:
         statuses = self._uploads_handed_over(session, self._statuses(session))
         self._stop_children(("agent",))
         self._stop_children(("cloud",))
-        self._stop_children(("recorder",))
+        self._stop_children(("recorder",), RECORDER_STOP_GRACE_S)
         return world + statuses
 
     def _operator_login(self) -> access.Login | None:
