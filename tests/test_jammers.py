@@ -30,6 +30,8 @@ def test_several_jammers_add_up_in_eq_3(scenario, x, y, jammers):
     want_db, want_k = reference_sinr_db(scenario, x, y, jammers[0], jammers[1:])
     reading = RadioModel(scenario).evaluate(np.array([x, y]),
                                             [JammerParams(*jammer) for jammer in jammers])
+    # Both sides in float64 (a few terms, each a few ulps of 1e-16 relative off): 1e-9 dB is
+    # the bound, a million times what the arithmetic leaves.
     assert float(reading.sinr_db) == pytest.approx(want_db, abs=1e-9)
     assert int(reading.serving_gbs) == want_k
 
@@ -91,6 +93,7 @@ def test_the_world_moves_and_switches_its_jammers_at_the_right_steps(scenario):
     for step in range(1, 9):
         world.step(hover, world.heading)
         t = step * dt
+        # float64: the leg's share times its length, within ulps of 40 m (1e-14 m).
         assert world.jammer_x[1, 0] == pytest.approx(min(-40.0 + 3.0 * t, 40.0), abs=1e-9)
         assert world.jammer_power[1, 1] == (0.5 if math.fmod(t, 4.0) < 2.0 else 0.0)
         # The other environment keeps the scenario's still jammer.
@@ -99,6 +102,7 @@ def test_the_world_moves_and_switches_its_jammers_at_the_right_steps(scenario):
     # What each UAV measures is the radio under the jammers where they are now.
     truth = RadioModel(scenario).evaluate(
         world.position[1], [JammerParams(*jammer) for jammer in world.jammers_now(1)])
+    # The same float64 radio at the same points: equal but for summation order (1e-14 dB).
     np.testing.assert_allclose(world.sinr_db[1], truth.sinr_db, rtol=0, atol=1e-9)
     world.reset([1], [7])  # a new episode starts each drive afresh
     assert world.jammer_x[1, 0] == -40.0 and world.jammer_power[1, 1] == 0.5

@@ -137,6 +137,7 @@ def test_the_jammers_option_sets_several_and_moves_them_along_their_paths():
         env.step({})
     # 10 steps of the scenario's step, at 3 m/s along +x; the still one has stayed.
     moved = -40.0 + 3.0 * 10 * env.scenario.timing.step_s
+    # float64 along the leg, then the state's float32: -10 m is exact in both.
     assert jammer_slots(env)[1, 0] == pytest.approx(moved, abs=1e-9)
     assert jammer_slots(env)[0].tolist() == [10.0, -20.0, 1.0]
     env.reset(options={"jammers": []})
