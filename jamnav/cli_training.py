@@ -132,6 +132,12 @@ def cmd_fit_sinr(args: argparse.Namespace) -> int:
 
     one_torch_thread()
     scenario = scenario_with_jammer(args)
+    flown = [jammer for jammer in scenario.jammers if jammer.enabled and jammer.power_w > 0]
+    if len(flown) > 1 or any(not jammer.still for jammer in flown):
+        flies = "several jammers" if len(flown) > 1 else "a jammer that moves or switches"
+        raise UsageError(f"fit-sinr learns the map of one still jammer, and scenario "
+                         f"{scenario.name} flies {flies}: name one with --jammer X,Y,P (or "
+                         "--no-jammer)")
     # Simulating takes about 1.4 kB per sample: a million is 1.4 GB, far past the default.
     check_range("--samples", args.samples, 100, 1_000_000)
     check_range("--steps", args.steps, 1)

@@ -217,6 +217,7 @@ CASES = [
     (["jammer", "remove", "-1"], 2),
     (["jammer", "off", "9"], 2),
     (["up", "--scenario", "convoy", "--map", "perfect"], 2),
+    (["fit-sinr", "--scenario", "two-jammers", "--out", "{tmp}/m.safetensors"], 2),
     (["jammers-table"], 2),
     (["jammers-table", "two-jammers", "--episodes", "0"], 2),
     (["jammers-table", "two-jammers", "--jobs", "0"], 2),
