@@ -13,7 +13,6 @@ from shared.outcomes import Outcome
 from shared.scenario import Scenario, load_scenario
 from shared.shipped import value_net_for
 from world_sim.core import VectorWorld
-from world_sim.jammers import scenario_jammers
 
 EPISODES = 400
 SEED = 0
@@ -45,5 +44,5 @@ def _fly(scenario: Scenario, maps) -> tuple[float, float]:
         jammed[0] += float((world.active.sum(axis=1) * on).sum()) * world.dt
 
     results = run_episodes(scenario, LookaheadController(policy, maps), EPISODES, SEED,
-                           scenario_jammers(scenario), on_step=count)
+                           scenario.flown_jammers, on_step=count)
     return float((results.outcomes == Outcome.SUCCESS).mean()), jammed[0] / EPISODES

@@ -18,7 +18,6 @@ import numpy as np
 
 from cloud_service.evaluation import RATE_KEYS, evaluate
 from shared.scenario import Scenario
-from world_sim.jammers import scenario_jammers
 
 LATENCIES_S = (0.0, 1.0, 2.0, 5.0, 10.0, 30.0, 60.0)
 
@@ -29,7 +28,7 @@ def sweep(scenario: Scenario, latencies: Sequence[float], seeds: int, episodes: 
     """Every seed's perfect-map run and one proposed run per latency, the same episodes and
     jammers each; returns the runs' rates (JSON-ready). ``on_run(result so far, label)``
     after each run."""
-    first = scenario_jammers(scenario)
+    first = scenario.flown_jammers
     runs: list[dict[str, Any]] = []
     result = {"scenario": scenario.name, "episodes": episodes, "seeds": seeds,
               "swap_every": swap_every, "uavs": uavs or scenario.missions.uav_count,

@@ -15,7 +15,6 @@ import numpy as np
 
 from cloud_service.evaluation import RATE_KEYS, evaluate
 from shared.scenario import load_scenario
-from world_sim.jammers import scenario_jammers
 
 METHODS = ("proposed", "perfect", "outdated")
 SHOWN_RATES = ("success_rate", "disconnection_rate", "collision_rate")
@@ -26,7 +25,7 @@ def fly(job: tuple[str, str, int, int]) -> dict[str, Any]:
     jammers at its cloud latency."""
     name, method, seed, episodes = job
     scenario = load_scenario(name)
-    report = evaluate(scenario, method, episodes, seed, scenario_jammers(scenario))
+    report = evaluate(scenario, method, episodes, seed, scenario.flown_jammers)
     return {"scenario": scenario.name, "method": method, "seed": seed, "episodes": episodes,
             "cloud_latency_s": scenario.online_map.cloud_latency_s,
             **{key: report[key] for key in RATE_KEYS}}

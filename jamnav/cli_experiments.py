@@ -71,7 +71,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     from cloud_service.evaluation import LOOKAHEAD_METHODS, EvaluationError, evaluate
     from jamnav.progress import ProgressBar
-    from world_sim.jammers import scenario_jammers
 
     check_range("--episodes", args.episodes, 1)
     check_range("--uavs", args.uavs, 1, MAX_UAVS)
@@ -80,7 +79,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         check_range("--swap-every", args.swap_every, 1)
     scenario = with_online_map_options(args, scenario_with_jammer(args))
     check_fleet("--uavs", args.uavs or scenario.missions.uav_count, scenario, args.seed)
-    setting = scenario_jammers(scenario)
+    setting = scenario.flown_jammers
     # Options a method would not read are refused, not ignored: the user meant something.
     if args.sinr_map is not None:
         if args.method != "proposed":

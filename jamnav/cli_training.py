@@ -132,7 +132,7 @@ def cmd_fit_sinr(args: argparse.Namespace) -> int:
 
     one_torch_thread()
     scenario = scenario_with_jammer(args)
-    flown = [jammer for jammer in scenario.jammers if jammer.enabled and jammer.power_w > 0]
+    flown = scenario.flown_jammers
     if len(flown) > 1 or any(not jammer.still for jammer in flown):
         flies = "several jammers" if len(flown) > 1 else "a jammer that moves or switches"
         raise UsageError(f"fit-sinr learns the map of one still jammer, and scenario "

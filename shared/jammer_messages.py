@@ -60,9 +60,8 @@ class JammerInfo(Message):
     @staticmethod
     def of_scenario(scenario: Scenario) -> tuple[JammerInfo, ...]:
         """The scenario's jammers that are on, numbered in the file's order."""
-        return tuple(JammerInfo.of(jammer, index) for index, jammer in
-                     enumerate(jammer for jammer in scenario.jammers
-                               if jammer.enabled and jammer.power_w > 0))
+        return tuple(JammerInfo.of(jammer, index)
+                     for index, jammer in enumerate(scenario.flown_jammers))
 
     @classmethod
     def parse(cls, text: str, default_height: float) -> JammerInfo:

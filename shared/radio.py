@@ -109,7 +109,7 @@ class RadioModel:
     def jammers_of(scenario: Scenario) -> tuple[JammerParams, ...]:
         """The scenario's jammers where they start, each on whatever its schedule."""
         return tuple(JammerParams(jam.x, jam.y, jam.power_w, jam.height_m)
-                     for jam in scenario.jammers if jam.enabled and jam.power_w > 0)
+                     for jam in scenario.flown_jammers)
 
     def gbs_received_power(self, xy: np.ndarray) -> np.ndarray:
         """Received power from every GBS, numerator of Eq. (1), with the world's shadowing if

@@ -330,6 +330,11 @@ class Scenario(_Strict):
         return data
 
     @property
+    def flown_jammers(self) -> tuple[Jammer, ...]:
+        """The jammers the scenario flies: those it lists that are on and have power."""
+        return tuple(jammer for jammer in self.jammers if jammer.enabled and jammer.power_w > 0)
+
+    @property
     def jammer(self) -> Jammer:
         """The first jammer: the one a single-jammer command or table sets, and whose height
         and efficiency are every command's defaults."""

@@ -20,7 +20,6 @@ from shared.paper import JammerSetting
 from shared.scenario import load_scenario, resolve_scenario_path
 from shared.shipped import SINR_MAP_NO_JAMMER
 from tests.support import free_endpoint, gone, wait_until
-from world_sim.jammers import scenario_jammers
 
 
 def run_json(capsys, *argv: str):
@@ -239,7 +238,7 @@ def test_the_cloud_on_the_lockstep_clock_flies_eval_s_maps_and_outcomes(supervis
         scenario = load_scenario(path)
         assert len(scenario.jammers) == 3
         extra += ["--scenario", str(path)]
-        flown = scenario_jammers(scenario)
+        flown = scenario.flown_jammers
     else:
         extra += ["--jammer", "0,0,1", "--swap-every", "2"]
         flown = JammerSetting(0.0, 0.0, 1.0)

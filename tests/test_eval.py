@@ -14,7 +14,6 @@ from jamnav.cli import main
 from shared.paper import TABLE_I_JAMMERS, JammerSetting
 from shared.scenario import load_scenario
 from shared.shipped import value_net_path
-from world_sim.jammers import scenario_jammers
 
 
 def run_json(capsys, *argv):
@@ -182,7 +181,7 @@ def test_the_jammers_table_flies_each_scenarios_own_jammers_as_eval_does(capsys,
         for method in ("proposed", "perfect", "outdated")]
     for run in runs[1::3]:  # the perfect maps': quick to fly again here
         scenario = load_scenario(run["scenario"])
-        again = evaluate(scenario, "perfect", 2, 0, scenario_jammers(scenario))
+        again = evaluate(scenario, "perfect", 2, 0, scenario.flown_jammers)
         assert run["success_rate"] == again["success_rate"]
         assert again["jammers"] == [jammer.model_dump(mode="json", exclude={
             "enabled", "efficiency_db"}, exclude_none=True) for jammer in scenario.jammers]

@@ -18,6 +18,8 @@ def seen(x: float, y: float, sd: float = 1.0) -> JammerEstimate:
 def test_exact_positions_on_a_line_give_its_velocity():
     """Nearly exact positions (0.5 m, the floor) a second apart along x at 3 m/s: the filter
     ends within a few centimetres a second of 3 m/s, and predicts ahead on the line."""
+    # The bounds are the filter's (its noise floor, its lag), not arithmetic: float64 leaves
+    # ~1e-15 of them.
     track = JammerTrack(acceleration_sd=0.01)
     for t in range(12):
         now = track.update(float(t), seen(-20.0 + 3.0 * t, 5.0, sd=0.0))

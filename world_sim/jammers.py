@@ -31,11 +31,6 @@ def jammer_set(scenario: Scenario, jammers: JammerSetting | JammerSet | None) ->
     return tuple(jammers)
 
 
-def scenario_jammers(scenario: Scenario) -> JammerSet:
-    """The jammers a scenario flies: those it lists that are on."""
-    return tuple(jammer for jammer in scenario.jammers if jammer.enabled and jammer.power_w > 0)
-
-
 def described_jammers(jammers: JammerSet) -> list[dict]:
     """A report's record of jammers: each one's place, power and height, and its path and
     schedule if it has them."""
