@@ -1,12 +1,14 @@
 """When the online mapper works on a detected change: how often the jammer is estimated and
 the map refitted, when the DNN alone may go, and when the map settles (``RetrainConfig``),
-and where the handling of one change stands (``HandledChange``)."""
+and where the handling of one change stands, the following of its jammer included
+(``HandledChange``)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 from cloud_service.estimated_jammer import JammerEstimate
+from cloud_service.jammer_tracking import WindowedTracker
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,15 @@ class HandledChange:
     # Whether reports since the detection showed the jammer still there
     # (``WithdrawalTest.confirms``).
     confirmed: bool = False
+    # Follows the jammer through windows of the uploads since ``start``; a moving one's
+    # estimate from all of them may never converge, so it does not wait for one.
+    tracker: WindowedTracker | None = None
+
+    def tracking_due(self, latest: float) -> bool:
+        """Whether uploads up to ``latest`` complete a window to follow the jammer through:
+        one jammer, unless the change was estimated to have several."""
+        several = self.estimate is not None and bool(self.estimate.others)
+        return self.tracker is not None and not several and self.tracker.due(latest)
 
     @property
     def phase(self) -> str:

@@ -1,6 +1,7 @@
-"""Estimating the jammer (position, power, uncertainty) from the uploads alone: whether they
-show one, where it stands and how strong it is (``estimate_jammer``), and, while they cannot
-place it yet, the hypotheses of a provisional map (``jammer_hypotheses``).
+"""Estimating the jammers (position, power, uncertainty) from the uploads alone: whether they
+show one, where it stands and how strong it is (``estimate_jammer``), how many there are and
+each one (``estimate_jammers``), and, while they cannot place one yet, the hypotheses of a
+provisional map (``jammer_hypotheses``).
 
 Why the no-jammer map matters. In the scenarios of this project the jammer costs less SINR
 than the world's SINR departs from the ideal model: from the ideal model alone a jammer
@@ -25,7 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cloud_service.estimated_jammer import JammerEstimate, JammerHypotheses
+from cloud_service.estimated_jammer import JammerEstimate, JammerHypotheses, estimated_set
 from cloud_service.jammer_evidence import (
     INDEPENDENT_SPACING_M,
     JammerEvidence,
@@ -213,38 +214,53 @@ def estimate_jammers(
     report_sigma_db: float = REPORT_SIGMA_DB,
 ) -> list[JammerEstimate] | None:
     """How many jammers, from none to ``most``, the uploads show, and each one; None when
-    they cannot tell yet.
+    they cannot tell yet (``_counted``)."""
+    reports = Reports.of(scenario, xy, levels, reported_db)
+    reading = _Reading(no_jammer_levels, no_jammer_db)
+    searched = _coarse_search(scenario, reports, reading, report_sigma_db)
+    if searched is None:
+        return None
+    counted = _counted(scenario, reports, reading, report_sigma_db, searched, most)
+    return None if counted is None else list(counted.members)
+
+
+def _counted(scenario: Scenario, reports: Reports, reading: _Reading, report_sigma_db: float,
+             searched: _Searched, most: int) -> JammerEstimate | None:
+    """The jammers the reports show, as one estimate of the set (``estimated_set``; with
+    ``present`` false, none), from their coarse search ``searched``; None when they cannot
+    tell yet.
 
     Count: whether there is any is ``estimate_jammer``'s decision. Then, greedily, one more
     is searched for with those found taken as known (their interference adds in Eq. (3)),
-    and kept while it raises the weighted log-likelihood by more than BIC's penalty,
+    among the powers the scenario expects (its training range), and kept while it raises the
+    weighted log-likelihood by more than BIC's penalty,
     ``JAMMER_PARAMETERS`` / 2 ln n over the n reports that count as independent; after each
     is added, every earlier one is placed again with all the others known (the first was
     placed as if alone, and read the others' losses as its own). Placing means the coarse
     search's best hypothesis. Each: one jammer is ``estimate_jammer``'s estimate; several
     are each estimated with the others known, and must each converge as ``estimate_jammer``
     asks (else None); each one's log-likelihood ratio is then against the others alone."""
-    reports = Reports.of(scenario, xy, levels, reported_db)
-    reading = _Reading(no_jammer_levels, no_jammer_db)
-    searched = _coarse_search(scenario, reports, reading, report_sigma_db)
-    if searched is None:
-        return None
+    def alone() -> JammerEstimate | None:
+        return _refitted(scenario, searched, _decide(
+            scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M), reports, reading)
+
     if searched.llr.max() < PRESENCE_LLR or most == 1:
-        alone = _decide(scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M)
-        return None if alone is None else [_refitted(scenario, searched, alone, reports,
-                                                     reading)] if alone.present else []
+        return alone()
     penalty = 0.5 * JAMMER_PARAMETERS * math.log(max(searched.evidence.effective_count, 2.0))
     placed = [_best_placed(searched)]
     while len(placed) < most:
+        # One more must be of the powers the scenario expects: a weaker one found beside a
+        # jammer is the misfit of the cloud's model (the survey map's errors) read as a source
+        # (BENCHMARKS.md, "Several jammers, and jammers that move", correcting with the sum).
         more = _coarse_search(scenario, reports, reading, report_sigma_db, placed)
+        more = more._replace(llr=np.where(_expected(scenario, more.search.powers_dbw),
+                                          more.llr, -np.inf))
         if more.llr.max() <= penalty:
             break
         placed = _placed_again(scenario, reports, reading, report_sigma_db,
                                [*placed, _best_placed(more)])
     if len(placed) == 1:
-        alone = _decide(scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M)
-        return None if alone is None else [_refitted(scenario, searched, alone, reports,
-                                                     reading)]
+        return alone()
     estimates = []
     for index in range(len(placed)):
         given = _coarse_search(scenario, reports, reading, report_sigma_db,
@@ -253,7 +269,11 @@ def estimate_jammers(
         if estimate is None or not estimate.present:
             return None
         estimates.append(estimate)
-    return estimates
+    if not all(_expected(scenario, estimate.effective_power_dbm - 30.0)
+               for estimate in estimates[1:]):
+        # ... and so must each one stay once estimated: else one jammer less.
+        return _counted(scenario, reports, reading, report_sigma_db, searched, len(placed) - 1)
+    return estimated_set(estimates)
 
 
 def _best_placed(searched: _Searched) -> Placed:
@@ -277,7 +297,7 @@ def _placed_again(scenario: Scenario, reports: Reports, reading: _Reading,
 
 
 class JammerFit(NamedTuple):
-    estimate: JammerEstimate | None  # as ``estimate_jammer``
+    estimate: JammerEstimate | None  # as ``estimate_jammers``, the set as one estimate
     hypotheses: JammerHypotheses | None  # as ``jammer_hypotheses``, when no estimate converged
 
 
@@ -286,17 +306,17 @@ def locate_jammer(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, *,
                   no_jammer_levels: np.ndarray | None = None,
                   no_jammer_db: SinrBelief | None = None,
                   report_sigma_db: float = REPORT_SIGMA_DB) -> JammerFit:
-    """``estimate_jammer`` and, if it gives no estimate, ``jammer_hypotheses``, both with
-    their defaults but ``report_sigma_db``, from one coarse search (most of the cost of
-    each)."""
+    """``estimate_jammers`` as one estimate of the set (``estimated_set``) and, if it gives
+    none, ``jammer_hypotheses``, each with its defaults but ``report_sigma_db``, from one
+    coarse search (most of the cost of each)."""
     reports = Reports.of(scenario, xy, levels, reported_db)
     reading = _Reading(no_jammer_levels, no_jammer_db)
     searched = _coarse_search(scenario, reports, reading, report_sigma_db)
     if searched is None:
         return JammerFit(None, None)
-    estimate = _decide(scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M)
+    estimate = _counted(scenario, reports, reading, report_sigma_db, searched, MAX_JAMMERS)
     if estimate is not None:
-        return JammerFit(_refitted(scenario, searched, estimate, reports, reading), None)
+        return JammerFit(estimate, None)
     return JammerFit(None, _hypotheses(scenario, searched, HYPOTHESES_MASS, MOST_HYPOTHESES,
                                        HYPOTHESES_LLR))
 
@@ -308,10 +328,7 @@ def _hypotheses(scenario: Scenario, searched: _Searched, mass: float, most: int,
     # Early on, a far stronger jammer farther off explains the few contradicting reports as
     # well as the right one, and it would darken the whole map: a provisional map weighs only
     # the powers the scenario expects (its training range).
-    low_w, high_w = scenario.training.jammer_power_range_w
-    nominal_w = 10.0 ** ((search.powers_dbw - scenario.jammer.efficiency_db) / 10.0)
-    expected = (nominal_w >= low_w * (1 - 1e-9)) & (nominal_w <= high_w * (1 + 1e-9))
-    llr = np.where(expected, llr, -np.inf)
+    llr = np.where(_expected(scenario, search.powers_dbw), llr, -np.inf)
     if llr.max() < presence_llr:
         return None
     weight = np.exp(llr - llr.max()).ravel()
@@ -325,6 +342,14 @@ def _hypotheses(scenario: Scenario, searched: _Searched, mass: float, most: int,
                  len(evidence.xy), float(llr[p, k]))
         for p, k in zip(positions.tolist(), powers.tolist(), strict=True)]
     return JammerHypotheses(estimates, weight[kept] / weight[kept].sum())
+
+
+def _expected(scenario: Scenario, powers_dbw: np.ndarray | float) -> np.ndarray | bool:
+    """Whether effective powers (dBW) are of the nominal powers the scenario expects (its
+    training range)."""
+    low_w, high_w = scenario.training.jammer_power_range_w
+    nominal_w = 10.0 ** ((np.asarray(powers_dbw) - scenario.jammer.efficiency_db) / 10.0)
+    return (nominal_w >= low_w * (1 - 1e-9)) & (nominal_w <= high_w * (1 + 1e-9))
 
 
 class _Searched(NamedTuple):

@@ -1,11 +1,12 @@
 """Following a jammer that moves: each window of recent uploads gives an estimate of where it
 is (``estimate_jammer``), and a constant-velocity Kalman filter joins them into a track, its
 position and velocity with their uncertainty (``JammerTrack``); ``track_jammer`` runs one over
-time-stamped uploads."""
+time-stamped uploads, and ``WindowedTracker`` one over the uploads of a change as they come
+in, for the online mapper."""
 
 from __future__ import annotations
 
-import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -102,12 +103,53 @@ def track_jammer(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, times: 
     estimated (``estimate_jammer``), and each estimate that converges updates the track at
     the window's middle; one entry per update. The windows do not overlap: the filter takes
     each estimate's error as its own, which overlapping windows would share."""
-    track, out = JammerTrack(), []
-    for end in np.arange(times.min() + window_s, times.max() + 1e-9, window_s).tolist():
-        rows = (times > end - window_s) & (times <= end)
-        estimate = estimate_jammer(
+    def estimate_window(start: float, end: float) -> JammerEstimate | None:
+        rows = (times > start) & (times <= end)
+        return estimate_jammer(
             scenario, xy[rows], levels[rows], no_jammer_levels=no_jammer_levels[rows],
             reported_db=None if reported_db is None else reported_db[rows])
-        if estimate is not None and estimate.present and math.isfinite(estimate.x):
-            out.append(track.update(end - window_s / 2.0, estimate))
-    return out
+
+    return WindowedTracker(float(times.min()), window_s).follow(float(times.max()) + 1e-9,
+                                                                estimate_window)
+
+
+class WindowedTracker:
+    """Follows the jammer of a change the cloud handles: the uploads since the change began,
+    cut into windows of ``window_s`` (``online_map.tracking_window_s``), each estimated on its
+    own once it is complete and joined into a ``JammerTrack``. Which estimate a window gets
+    is the caller's (the mapper's, with its no-jammer beliefs)."""
+
+    def __init__(self, start: float, window_s: float):
+        self.window_s = window_s
+        self.next_start = start  # of the first window not estimated yet
+        self.track = JammerTrack()
+        self.updates = 0
+
+    def due(self, latest: float) -> bool:
+        """Whether uploads up to ``latest`` complete a window not estimated yet."""
+        return latest >= self.next_start + self.window_s
+
+    def follow(self, latest: float, estimate_window: Callable[[float, float],
+                                                              JammerEstimate | None]
+               ) -> list[TrackedJammer]:
+        """Estimate every window that uploads up to ``latest`` complete
+        (``estimate_window(start, end)``), in order; the track after each that places the
+        jammer."""
+        out = []
+        while self.due(latest):
+            start, end = self.next_start, self.next_start + self.window_s
+            self.next_start = end
+            estimate = estimate_window(start, end)
+            if estimate is not None and estimate.present and not estimate.others:
+                out.append(self.track.update((start + end) / 2.0, estimate))
+                self.updates += 1
+        return out
+
+    def velocity(self) -> dict[str, float] | None:
+        """The velocity and its sds as an estimate carries them, once two windows placed
+        the jammer (one alone says nothing of its motion)."""
+        if self.updates < 2:
+            return None
+        now = self.track.now()
+        return {"vx_mps": now.vx, "vy_mps": now.vy, "sd_vx_mps": now.sd_vx_mps,
+                "sd_vy_mps": now.sd_vy_mps}

@@ -173,9 +173,11 @@ class _IdealLosses:
         return self.ideal_db - 10.0 * np.log10(jammed)
 
 
-def _params_of(scenario: Scenario, estimate: JammerEstimate) -> JammerParams:
-    """The radio model's jammer for a present ``estimate`` (at the scenario's jammer height)."""
-    return JammerParams(estimate.x, estimate.y, estimate.power_w, scenario.jammer.height_m)
+def _params_of(scenario: Scenario, estimate: JammerEstimate) -> tuple[JammerParams, ...]:
+    """The radio model's jammers for a present ``estimate``, each of its set (at the
+    scenario's jammer height)."""
+    return tuple(JammerParams(member.x, member.y, member.power_w, scenario.jammer.height_m)
+                 for member in estimate.members)
 
 
 def _map_at(scenario: Scenario, map_at: Callable[[np.ndarray], np.ndarray],

@@ -96,7 +96,7 @@ def map_card(weights: PublishedWeights, published: float,
     on the lockstep clock, also the run's seconds of flight when it was published."""
     return {"version": weights.version, "accuracy": weights.accuracy, "sha256": weights.sha256,
             "published": published, "flown_s": flown_s,
-            "estimate": None if weights.estimate is None else weights.estimate._asdict(),
+            "estimate": None if weights.estimate is None else weights.estimate.record(),
             "refining_since": weights.refining_since, "provisional": weights.provisional}
 
 
@@ -107,7 +107,7 @@ def estimate_of(card: dict[str, Any]) -> EstimatedJammer | None:
     if not isinstance(fields, dict):
         return None
     try:
-        return EstimatedJammer(**fields)
+        return EstimatedJammer.of_record(fields)
     except TypeError:
         return None
 
@@ -356,6 +356,10 @@ class CloudService:
                 self.log.info("jammer estimate withdrawn: %.1f nats against it from the reports "
                               "since t=%.1f; the survey map is in service as v%d",
                               event["evidence_nats"], event["evidence_since"], event["version"])
+            elif event["type"] == "jammer_tracked":
+                self.log.info("jammer tracked at (%.1f, %.1f) m, moving (%.1f, %.1f) +- "
+                              "(%.1f, %.1f) m/s", event["x"], event["y"], event["vx"],
+                              event["vy"], event["sd_vx_mps"], event["sd_vy_mps"])
             elif event["type"] == "retrain_failed":
                 self._publish_event(RetrainFailed(t=event["t"], source=ROLE,
                                                   version=event["version"],
@@ -408,12 +412,16 @@ def _answer(query, receipt: UploadReceipt) -> None:
 
 # -- process shell ------------------------------------------------------------------------------
 def estimate_message(estimate, map_version: int, t: float) -> JammerEstimate:
-    """The wire form of a ``jammer_estimation.JammerEstimate``."""
-    fields = estimate._asdict()
+    """The wire form of a ``jammer_estimation.JammerEstimate``: each jammer of its set
+    numbered in the set's order."""
     if not estimate.present:
-        fields = {"present": False, "measurements": estimate.measurements}
-    return JammerEstimate(map_version=map_version, t=t, **{
-        key: value for key, value in fields.items() if key in JammerEstimate.model_fields})
+        return JammerEstimate(map_version=map_version, t=t, present=False,
+                              measurements=estimate.measurements)
+    first, *others = (JammerEstimate(map_version=map_version, t=t, id=index, **{
+        key: value for key, value in member._asdict().items()
+        if key in JammerEstimate.model_fields and key != "others"})
+        for index, member in enumerate(estimate.members))
+    return first.model_copy(update={"others": others})
 
 
 def mapper_details(state: dict) -> dict:

@@ -25,7 +25,8 @@ import numpy as np
 from cloud_service.change_detection import ChangeDetector, DetectorCheck
 from cloud_service.change_handling import HandledChange, RetrainConfig
 from cloud_service.estimated_jammer import JammerEstimate, JammerHypotheses
-from cloud_service.jammer_estimation import locate_jammer
+from cloud_service.jammer_estimation import estimate_jammer, locate_jammer
+from cloud_service.jammer_tracking import WindowedTracker
 from cloud_service.jammer_withdrawal import WithdrawalCheck, WithdrawalTest, withdrawal_evidence
 from cloud_service.map_correction import corrected_levels
 from cloud_service.map_refit import prior_positions, refit_network
@@ -152,6 +153,7 @@ class OnlineSinrMapper:
         self._seed = seed
         self._lock = threading.Lock()
         self._recent = deque(maxlen=RECENT_KEPT)
+        self._latest = -np.inf  # when the newest report stored was taken
         self._busy = False
         self._worker: threading.Thread | None = None
         # Set by ``close``: work under way stops at its next check and publishes nothing.
@@ -178,7 +180,8 @@ class OnlineSinrMapper:
         if estimate is not None and refining_since is not None:
             done = len(self.memory.since(refining_since))
             self._change = HandledChange(refining_since, self.clock(), done, estimate,
-                                         tried_at=done, tries=done, confirmed=True)
+                                         tried_at=done, tries=done, confirmed=True,
+                                         tracker=self._tracker(refining_since))
         # The change whose handling made the correction in service.
         self._correction_change = self._change
 
@@ -255,6 +258,7 @@ class OnlineSinrMapper:
         map to publish when the reports withdrew that jammer."""
         probabilities = predict_probabilities(self._network, stored.features)
         self._recent.extend((probabilities.argmax(-1) == stored.levels).tolist())
+        self._latest = max(self._latest, float(stored.times.max()))
         xy = positions_from_features(self.scenario, stored.features)
         check = withdrawn = None
         if self._correction is not None:
@@ -301,7 +305,8 @@ class OnlineSinrMapper:
     def _on_change(self, check: DetectorCheck) -> None:
         start = self.detector.change_start
         self.reference.discard_since(start)
-        self._change = HandledChange(start, self.clock(), len(self.memory.since(start)))
+        self._change = HandledChange(start, self.clock(), len(self.memory.since(start)),
+                                     tracker=self._tracker(start))
         self.events.append({"type": "change_detected", "t": self.clock(),
                             "version": self._version, "source": check.source,
                             "accuracy": float(np.mean(self._recent)), "change_time": start})
@@ -364,6 +369,8 @@ class OnlineSinrMapper:
         if self._busy or self._change is None:
             return None
         job = self._change.next_job(self.retrain)
+        if job is None and self._change.tracking_due(self._latest):
+            job = "track"
         self._busy = job is not None
         return job
 
@@ -383,6 +390,8 @@ class OnlineSinrMapper:
                 self._try_estimate(change, data)
             elif job == "fit":  # the DNN alone, the jammer neither placed nor confirmed
                 self._fit(change, data, None)
+            elif job == "track":
+                self._follow(change)
             else:  # "settle": the map stands, the detector watches it
                 self._settle(change)
         except Exception as exc:  # a failed adaptation must not leave the mapper stuck
@@ -398,13 +407,8 @@ class OnlineSinrMapper:
         # The survey map carries the world's shadowing, which the ideal model lacks: without
         # it a jammer cannot be told from a shadow; its probabilities, not only its levels,
         # say how near a level's edge each report lies (see jammer_estimation).
-        xy = positions_from_features(self.scenario, data.features)
-        spread_db = self.report_models.model_spread_db
-        located = locate_jammer(
-            self.scenario, xy, data.levels, reported_db=data.sinr_db,
-            no_jammer_levels=self.report_models.no_jammer_probabilities(xy),
-            no_jammer_db=self.reference.at(xy),
-            report_sigma_db=REPORT_SIGMA_DB if spread_db is None else spread_db)
+        xy, levels, inputs = self._estimate_inputs(data)
+        located = locate_jammer(self.scenario, xy, levels, **inputs)
         if self._closing.is_set():
             return
         estimate = located.estimate
@@ -424,6 +428,34 @@ class OnlineSinrMapper:
         # place it may be in proportion to its probability, until an estimate converges.
         if located.hypotheses is not None:
             self._fit(change, data, located.hypotheses)
+
+    def _estimate_inputs(self, data: MeasurementBatch) -> tuple[np.ndarray, np.ndarray, dict]:
+        """Where the reports of ``data`` were taken, their levels, and what else an estimate
+        reads of them: their SINRs and the cloud's no-jammer beliefs there."""
+        xy = positions_from_features(self.scenario, data.features)
+        spread_db = self.report_models.model_spread_db
+        return xy, data.levels, {
+            "reported_db": data.sinr_db,
+            "no_jammer_levels": self.report_models.no_jammer_probabilities(xy),
+            "no_jammer_db": self.reference.at(xy),
+            "report_sigma_db": REPORT_SIGMA_DB if spread_db is None else spread_db}
+
+    # -- following ---------------------------------------------------------------------------
+    def _tracker(self, start: float) -> WindowedTracker:
+        return WindowedTracker(start, self.scenario.online_map.tracking_window_s)
+
+    def _follow(self, change: HandledChange) -> None:
+        """Estimate the windows of uploads the change's tracker has not seen, each alone, and
+        log where the track puts the jammer after each that placed it."""
+        tracked = change.tracker.follow(self._latest, self._window_estimate)
+        with self._lock:
+            self.events.extend({**now._asdict(), "type": "jammer_tracked", "t": self.clock(),
+                                "tracked_at": now.t} for now in tracked)
+
+    def _window_estimate(self, start: float, end: float) -> JammerEstimate | None:
+        data = self.memory.since(start)
+        xy, levels, inputs = self._estimate_inputs(data.take(np.flatnonzero(data.times < end)))
+        return estimate_jammer(self.scenario, xy, levels, **inputs)
 
     def _fit(self, change: HandledChange, data: MeasurementBatch,
              jammer: JammerEstimate | JammerHypotheses | None) -> None:
@@ -495,6 +527,9 @@ class OnlineSinrMapper:
         provisional = isinstance(jammer, JammerHypotheses)
         # The estimate behind the map, when one converged; a provisional map has none.
         estimate = None if provisional else jammer
+        velocity = None if change.tracker is None else change.tracker.velocity()
+        if estimate is not None and not estimate.others and velocity is not None:
+            estimate = estimate._replace(**velocity)
         weights = to_bytes(result.network)
         with self._lock:
             if self._change is not change:
@@ -507,7 +542,7 @@ class OnlineSinrMapper:
             self._correction_change = change
             if estimate is not None:
                 self.events.append({"type": "jammer_estimated", "t": self.clock(),
-                                    "map_version": self._version, **estimate._asdict()})
+                                    "map_version": self._version, **estimate.record()})
             self._log_published(published, len(data), result.seconds)
         return published
 

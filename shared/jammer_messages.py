@@ -200,9 +200,11 @@ class JammerReply(Message):
 
 
 class JammerEstimate(Message):
-    """The cloud's estimate of the jammer after a detected change, from the uploads alone.
+    """The cloud's estimate of the jammers after a detected change, from the uploads alone:
+    the first jammer in its own fields and any estimated beside it in ``others``, each a
+    present estimate with its own ``id`` and no others of its own.
 
-    ``map_version`` is the SINR map corrected with it (published at the same time). With
+    ``map_version`` is the SINR map corrected with them (published at the same time). With
     ``present`` false the uploads are best explained by no jammer at all, and the position and
     power fields are None. Standard deviations come from the fit's likelihood.
     """
@@ -210,6 +212,7 @@ class JammerEstimate(Message):
     map_version: Count
     t: Finite  # unix seconds (simulated seconds in-process)
     present: bool
+    id: JammerId = 0  # the estimate's own numbering, not the world's (it cannot know those)
     x: Finite | None = None
     y: Finite | None = None
     power_w: NonNegative | None = None  # nominal, as `jamnav jammer set` takes it
@@ -217,8 +220,14 @@ class JammerEstimate(Message):
     sd_x_m: NonNegative | None = None
     sd_y_m: NonNegative | None = None
     sd_power_db: NonNegative | None = None
+    # Where the cloud follows the jammer over time: its velocity (m/s) and their sds.
+    vx_mps: Finite | None = None
+    vy_mps: Finite | None = None
+    sd_vx_mps: NonNegative | None = None
+    sd_vy_mps: NonNegative | None = None
     measurements: Count  # post-change uploads it was fitted to
     change_time: Finite | None = None  # the detector's estimate of when the change happened
+    others: list[JammerEstimate] = Field(default_factory=list, max_length=MAX_JAMMERS - 1)
 
     @model_validator(mode="after")
     def _located(self) -> JammerEstimate:
@@ -227,7 +236,18 @@ class JammerEstimate(Message):
             raise ValueError("a present jammer needs x, y and power_w")
         if not self.present and any(v is not None for v in located):
             raise ValueError("an absent jammer has no x, y or power_w")
+        if self.others and not self.present:
+            raise ValueError("an absent jammer has no others beside it")
+        if any(not other.present or other.others for other in self.others):
+            raise ValueError("each other jammer is present, with no others of its own")
+        if len({estimate.id for estimate in self.members}) != len(self.members):
+            raise ValueError("each estimated jammer needs its own id")
         return self
+
+    @property
+    def members(self) -> list[JammerEstimate]:
+        """Each estimated jammer, this one first; none when ``present`` is false."""
+        return [self, *self.others] if self.present else []
 
 
 def describe_jammers(jammers: Sequence[JammerInfo]) -> str:
@@ -243,9 +263,21 @@ def describe_jammers(jammers: Sequence[JammerInfo]) -> str:
 
 
 def describe_estimate(estimate: JammerEstimate) -> str:
-    """One line for people: where the jammer is thought to be, and how sure the fit is."""
+    """One line for people: where each jammer is thought to be, and how sure the fit is."""
     if not estimate.present:
         return f"no jammer ({estimate.measurements} measurements)"
-    return (f"({estimate.x:.1f} +- {estimate.sd_x_m:.1f}, {estimate.y:.1f} +- "
-            f"{estimate.sd_y_m:.1f}) m, {estimate.power_w:.2f} W +- {estimate.sd_power_db:.1f} dB "
-            f"({estimate.measurements} measurements)")
+    places = [f"({member.x:.1f} +- {member.sd_x_m:.1f}, {member.y:.1f} +- "
+              f"{member.sd_y_m:.1f}) m, {member.power_w:.2f} W +- {member.sd_power_db:.1f} dB"
+              + _velocity(member) for member in estimate.members]
+    if len(places) > 1:
+        places = [f"{len(places)} jammers:"] + [f"{member.id}: {place};" for member, place
+                                                in zip(estimate.members, places, strict=True)]
+        places[-1] = places[-1].rstrip(";")
+    return " ".join(places) + f" ({estimate.measurements} measurements)"
+
+
+def _velocity(estimate: JammerEstimate) -> str:
+    if estimate.vx_mps is None or estimate.vy_mps is None:
+        return ""
+    return (f", moving ({estimate.vx_mps:.1f} +- {estimate.sd_vx_mps or 0.0:.1f}, "
+            f"{estimate.vy_mps:.1f} +- {estimate.sd_vy_mps or 0.0:.1f}) m/s")

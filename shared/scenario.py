@@ -298,6 +298,9 @@ class OnlineMap(_Strict):
     reference_cell_m: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 1.0
     reference_delay_s: NonNegative = 10.0
     detection_shift_db: Positive = 1.0
+    # While it handles a change, the cloud follows the jammer through windows of this many
+    # seconds of uploads, each estimated alone (cloud_service.jammer_tracking).
+    tracking_window_s: Positive = 5.0
 
 
 class Scenario(_Strict):

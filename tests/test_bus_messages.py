@@ -12,7 +12,7 @@ import pytest
 
 from shared.cloud_messages import MeasurementUpload, RasterGrid, SinrMap, ValueWeights
 from shared.events import UavOutcomes, decode_event
-from shared.jammer_messages import JammerCommand, JammerInfo
+from shared.jammer_messages import JammerCommand, JammerEstimate, JammerInfo
 from shared.measurements import Measurement
 from shared.observation import Observation
 from shared.topics import Topics
@@ -130,3 +130,29 @@ def test_the_zenoh_cli_codec_prints_json_and_encodes_commands():
     assert printed["data"] == "<10 bytes>" and printed["version"] == 1
     command = zenoh_cli_encoder("k", '{"action": "set", "x": 1, "y": 2, "power_w": 0.5}')
     assert decode(JammerCommand, command).power_w == 0.5
+
+
+def test_an_estimate_of_several_jammers_numbers_each_on_the_wire():
+    """The cloud's set goes out as the first jammer with the others beside it, numbered in
+    the set's order; a set that breaks the message's rules is refused in one line."""
+    from cloud_service.estimated_jammer import JammerEstimate as Estimated
+    from cloud_service.estimated_jammer import estimated_set
+    from cloud_service.process import estimate_message
+
+    first = Estimated(True, 3.0, -7.0, 0.8, 9.0, 4.0, 2.0, 1.5, 500, 30.0, 3.0)
+    second = Estimated(True, -20.0, 12.0, 0.5, 7.0, 1.0, 3.0, 0.5, 500, 20.0, 0.0)
+    message = estimate_message(estimated_set([first, second]), 4, 10.0)
+    decoded = decode(JammerEstimate, encode(message))
+    assert [(m.id, m.x, m.y, m.power_w) for m in decoded.members] == [
+        (0, 3.0, -7.0, 0.8), (1, -20.0, 12.0, 0.5)]
+    assert decoded.map_version == decoded.others[0].map_version == 4
+    assert estimate_message(first, 4, 10.0).others == []
+    assert estimate_message(Estimated(False, None, None, None, None, None, None, None, 9, 0.0),
+                            4, 10.0).members == []
+    fields = message.model_dump()
+    for broken, fragment in (({**fields, "present": False, "x": None, "y": None,
+                               "power_w": None}, "no others"),
+                             ({**fields, "others": [{**fields["others"][0], "id": 0}]},
+                              "its own id")):
+        with pytest.raises(MessageError, match=fragment):
+            decode(JammerEstimate, msgpack.packb(broken))

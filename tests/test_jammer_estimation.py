@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.special import ndtr as norm_cdf
 
-from cloud_service.estimated_jammer import JammerEstimate, posterior_hypotheses
+from cloud_service.estimated_jammer import JammerEstimate, estimated_set, posterior_hypotheses
 from cloud_service.jammer_estimation import (
     estimate_jammer,
     estimate_jammers,
@@ -380,6 +380,21 @@ def test_corrected_map_is_exact_in_the_ideal_world(scenario):
         assert np.mean(corrected == jammed) >= 0.995
 
 
+def test_a_set_of_jammers_corrects_the_map_with_their_sum(scenario):
+    """Two Table I jammers as one estimate: the ideal world's map corrected with the set is
+    that world with both jammers, where either alone leaves far more of it wrong."""
+    ideal = RadioModel(scenario)
+    points = grid_points(scenario)
+    first, second = TABLE_I_JAMMERS[0], TABLE_I_JAMMERS[2]
+    jammed = ideal.evaluate(points, [JammerParams(*s, scenario.jammer.height_m)
+                                     for s in (first, second)]).level
+    quiet = lambda xy: ideal.evaluate(xy).level  # noqa: E731
+    both = estimated_set([known(first, scenario), known(second, scenario)])
+    assert np.mean(corrected_levels(scenario, quiet, both, points) == jammed) >= 0.995
+    alone = corrected_levels(scenario, quiet, known(first, scenario), points)
+    assert np.mean(alone == jammed) <= 0.98
+
+
 def test_without_a_jammer_the_no_jammer_map_stands(scenario):
     points = grid_points(scenario, 5.0)
     base = RadioModel(scenario).evaluate(points).level
@@ -436,6 +451,21 @@ def test_locating_once_gives_what_the_estimate_and_the_hypotheses_give_apart():
 
 
 # -- the ideal model vouching for reports -------------------------------------------------------
+def test_locating_several_jammers_gives_them_as_one_set(scenario):
+    """Where the reports show two jammers, ``locate_jammer``'s estimate is the set
+    ``estimate_jammers`` counts, the first with the other beside it, and no hypotheses."""
+    truth = RadioModel(scenario)
+    xy = uniform_points(scenario, np.random.default_rng(0), 2000)
+    placed = [JammerParams(-25.0, 15.0, 1.0, scenario.jammer.height_m),
+              JammerParams(25.0, -10.0, 1.0, scenario.jammer.height_m)]
+    levels, no_jammer = truth.evaluate(xy, placed).level, truth.evaluate(xy).level
+    fit = locate_jammer(scenario, xy, levels, no_jammer_levels=no_jammer)
+    counted = estimate_jammers(scenario, xy, levels, no_jammer_levels=no_jammer)
+    assert fit.hypotheses is None and len(counted) == 2
+    assert list(fit.estimate.members) == counted
+    assert fit.estimate.others == (counted[1],)
+
+
 def test_the_ideal_model_vouches_only_where_the_survey_map_keeps_to_it(scenario, shadowed):
     """Its spread: the survey map's departure and the receivers' noise, added in quadrature
     (0.3 and 0.4 dB give 0.5 dB), and none at all once over half icc2021's narrowest band,
@@ -492,3 +522,32 @@ def test_an_estimates_sigma_points_share_its_mean_and_covariance():
     assert weights @ power_db == pytest.approx(10.0 * np.log10(0.8))
     assert weights @ (power_db - 10.0 * np.log10(0.8)) ** 2 == pytest.approx(1.5**2)
 
+
+
+def test_the_sigma_points_of_a_set_move_one_jammer_at_a_time():
+    """Two jammers: six hypotheses each, every one with the other jammer exactly where it
+    was estimated, and each jammer's own points sharing its mean."""
+    first = JammerEstimate(True, 3.0, -7.0, 0.8, 9.0, 4.0, 2.0, 1.5, 500, 30.0, 3.0)
+    second = JammerEstimate(True, -20.0, 12.0, 0.5, 7.0, 1.0, 3.0, 0.5, 500, 20.0, 0.0)
+    hypotheses = posterior_hypotheses(estimated_set([first, second]))
+    assert len(hypotheses.estimates) == 12
+    for moved, still in ((first, second), (second, first)):
+        own = [h for h in hypotheses.estimates if still in h.members]
+        assert len(own) == 6
+        points = [next(m for m in h.members if m != still) for h in own]
+        assert np.mean([(p.x, p.y) for p in points], axis=0) == pytest.approx([moved.x, moved.y])
+
+
+def test_an_estimate_of_several_jammers_survives_its_record():
+    """What a map's card and an event hold (plain JSON fields) reads back as the set."""
+    import json
+
+    first = JammerEstimate(True, 3.0, -7.0, 0.8, 9.0, 4.0, 2.0, 1.5, 500, 30.0, 3.0)
+    second = JammerEstimate(True, -20.0, 12.0, 0.5, 7.0, 1.0, 3.0, 0.5, 500, 20.0, 0.0)
+    both = estimated_set([first, second])
+    record = json.loads(json.dumps(both.record()))
+    assert record["others"][0]["x"] == -20.0
+    assert JammerEstimate.of_record(record) == both
+    assert JammerEstimate.of_record(first.record()) == first
+    assert both.members == (first, second) and first.members == (first,)
+    assert JammerEstimate(False, None, None, None, None, None, None, None, 10, 0.0).members == ()

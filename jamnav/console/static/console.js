@@ -164,9 +164,13 @@
     }
   }
 
+  // Each jammer the cloud estimated: a dashed ellipse two standard deviations wide.
+  function estimatedJammers(estimate) {
+    return estimate && estimate.present ? [estimate, ...(estimate.others || [])] : [];
+  }
+
   function drawJammers(frame) {
-    const estimate = frame.estimate;
-    if (estimate && estimate.present) {
+    for (const estimate of estimatedJammers(frame.estimate)) {
       const [px, py] = toCanvas(estimate.x, estimate.y);
       ctx.strokeStyle = "#ff5fa2";
       ctx.lineWidth = 2;
@@ -290,8 +294,9 @@
     renderJammers(frame);
     const e = frame.estimate;
     show("estimate-text", !e ? "" : e.present
-      ? `Cloud's estimate (map v${e.map_version}): (${e.x.toFixed(1)} ± ${e.sd_x_m.toFixed(1)}, `
-        + `${e.y.toFixed(1)} ± ${e.sd_y_m.toFixed(1)}) m, ${e.power_w.toFixed(2)} W`
+      ? `Cloud's estimate (map v${e.map_version}): ` + estimatedJammers(e).map((j) =>
+        `${j.id}: (${j.x.toFixed(1)} ± ${j.sd_x_m.toFixed(1)}, `
+        + `${j.y.toFixed(1)} ± ${j.sd_y_m.toFixed(1)}) m, ${j.power_w.toFixed(2)} W`).join("; ")
       : `Cloud's estimate (map v${e.map_version}): no jammer`);
     for (const [name, count] of Object.entries(frame.counters)) show(`n-${name}`, count);
   }
