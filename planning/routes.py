@@ -34,7 +34,7 @@ from planning.compiled import chosen_planner, compiled_module
 from shared.kinematics import clamp
 
 
-class _EdgeWeights(NamedTuple):
+class EdgeWeights(NamedTuple):
     """Length times mean crossing cost of every edge of the 8-connected grid, by direction:
     ``down[r, c]`` joins (r, c)-(r+1, c), ``right[r, c]`` (r, c)-(r, c+1), ``down_right[r, c]``
     (r, c)-(r+1, c+1) and ``down_left[r, c]`` (r, c+1)-(r+1, c)."""
@@ -45,7 +45,7 @@ class _EdgeWeights(NamedTuple):
     down_left: np.ndarray
 
     @classmethod
-    def of(cls, cost: np.ndarray, cell: float) -> _EdgeWeights:
+    def of(cls, cost: np.ndarray, cell: float) -> EdgeWeights:
         straight, diagonal = cell * 1.0, cell * float(np.hypot(1, 1))
         return cls(
             down=straight * (0.5 * (cost[:-1, :] + cost[1:, :])),
@@ -54,8 +54,8 @@ class _EdgeWeights(NamedTuple):
             down_left=diagonal * (0.5 * (cost[:-1, 1:] + cost[1:, :-1])),
         )
 
-    def transposed(self) -> _EdgeWeights:
-        return _EdgeWeights(self.right.T, self.down.T, self.down_right.T, self.down_left.T)
+    def transposed(self) -> EdgeWeights:
+        return EdgeWeights(self.right.T, self.down.T, self.down_right.T, self.down_left.T)
 
     def improvable(self, field: np.ndarray) -> bool:
         """Whether some edge still shortens ``field``: False only at the fixpoint."""
@@ -90,7 +90,7 @@ class SweptFields:
     the two: one numpy call relaxes a line of each, which makes a field cheaper than sweeping
     them one after the other (BENCHMARKS.md, "Fleets of agent processes")."""
 
-    def __init__(self, weights: _EdgeWeights):
+    def __init__(self, weights: EdgeWeights):
         self.weights = weights
         # The weights as the sweeps read them: rows, then columns, the second copy upside down.
         self.lines = tuple(
@@ -118,7 +118,7 @@ class SweptFields:
                 return field
 
 
-def field_builder(weights: _EdgeWeights) -> FieldBuilder:
+def field_builder(weights: EdgeWeights) -> FieldBuilder:
     """The builder of route fields on ``weights`` that ``JAMNAV_PLANNER`` names: the compiled
     core's Dijkstra, or the numpy sweeps of the reference."""
     if chosen_planner() == "reference":
@@ -131,13 +131,15 @@ def field_builder(weights: _EdgeWeights) -> FieldBuilder:
 FIELDS_KEPT = 4096
 # A field computed for trips stops where the route grows longer than a reach: this many times
 # the straight distance from the farthest position asked about to the destination, plus the
-# margin. Dijkstra settles nodes in the order of their distance, so every node within the reach
-# has its exact distance and every node beyond reads infinity; a query that reads one has its
-# field computed whole. So the values read are those of the whole field, bit for bit, and most
-# fields cover a disc about the trip instead of the map: on a large map most of the work is
-# saved.
+# margin, rounded up to REACH_STEP_M. Dijkstra settles nodes in the order of their distance, so
+# every node within the reach has its exact distance and every node beyond reads infinity; a
+# query that reads one has its field computed whole (a decision that reads one, every field of
+# its batch that stops at a reach: rounding up keeps that rare). So the values read are those
+# of the whole field, bit for bit, and most fields cover a disc about the trip instead of the
+# map: on a large map most of the work is saved.
 REACH_FACTOR = 1.5
 REACH_MARGIN_M = 30.0
+REACH_STEP_M = 50.0
 
 
 class RouteGrid:
@@ -147,7 +149,7 @@ class RouteGrid:
                  uncovered_cost: float, cache_size: int = FIELDS_KEPT):
         self.rows, self.cols = covered.shape
         self.x0, self.y0, self.cell = x0, y0, cell
-        self.weights = _EdgeWeights.of(np.where(covered, 1.0, uncovered_cost), cell)
+        self.weights = EdgeWeights.of(np.where(covered, 1.0, uncovered_cost), cell)
         self._build = field_builder(self.weights)
         # Destination node -> its slot in ``store``, least recently used first. One array of
         # fields read by fancy indexing: stacking them per query would copy every field at
@@ -185,11 +187,11 @@ class RouteGrid:
         return np.array([self.cache[node] for node in wanted], dtype=np.int64)
 
     def _compute(self, nodes: list[int], reach_m: list[float]) -> None:
-        """The fields to ``nodes`` into the cache, each stopped at its reach (infinite:
-        whole)."""
+        """The fields to ``nodes`` into the cache, each stopped at its reach rounded up to
+        REACH_STEP_M (infinite: whole)."""
         if not nodes:
             return
-        limits = np.asarray(reach_m, dtype=np.float64)
+        limits = np.ceil(np.asarray(reach_m, dtype=np.float64) / REACH_STEP_M) * REACH_STEP_M
         fields = self._build(np.asarray(nodes, dtype=np.int64), limits)
         for node, field, limit in zip(nodes, fields, limits.tolist(), strict=True):
             self._keep(node, field)
