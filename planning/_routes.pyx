@@ -2,7 +2,7 @@
 # cython: initializedcheck=False
 """The route fields of ``planning.routes`` compiled: Dijkstra from each destination over the
 8-connected grid, a binary heap of the nodes reached but not yet settled, on the float64 edge
-weights of ``planning.routes._EdgeWeights``. The numpy sweep of ``planning.routes`` is the
+weights of ``planning.routes.EdgeWeights``. The numpy sweep of ``planning.routes`` is the
 reference: both reach the one fixpoint of d[v] = min(d[v], d[u] + w(u, v)) by the same float64
 additions, so their fields are the same bit for bit.
 
@@ -136,7 +136,7 @@ def route_fields(const double[:, ::1] down, const double[:, ::1] right,
                  const int64_t[::1] destinations, const double[::1] limits):
     """The route fields (destinations, rows, cols) float64 to each node of ``destinations``
     (flat indices into the grid), each infinite beyond its own of ``limits``, on the edge
-    weights of ``planning.routes._EdgeWeights`` (``down`` (rows - 1, cols), ``right``
+    weights of ``planning.routes.EdgeWeights`` (``down`` (rows - 1, cols), ``right``
     (rows, cols - 1), both diagonals (rows - 1, cols - 1))."""
     cdef Py_ssize_t rows = right.shape[0], cols = down.shape[1], count = destinations.shape[0]
     cdef Py_ssize_t nodes = rows * cols, k

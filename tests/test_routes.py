@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from planning import PLANNER_VARIABLE
 from planning.compiled import compiled_module
-from planning.routes import RouteGrid, SweptFields, _EdgeWeights
+from planning.routes import EdgeWeights, RouteGrid, SweptFields
 
 
 def grid(covered, cost=4.0):
@@ -52,7 +52,7 @@ def test_rows_read_their_own_destination_and_fields_are_cached():
 COMPILED = compiled_module("_routes")
 
 
-def built(weights: _EdgeWeights, nodes, limits, builder: str) -> np.ndarray:
+def built(weights: EdgeWeights, nodes, limits, builder: str) -> np.ndarray:
     nodes = np.asarray(nodes, dtype=np.int64)
     limits = np.broadcast_to(np.asarray(limits, dtype=np.float64), nodes.shape).copy()
     if builder == "compiled":
@@ -78,7 +78,7 @@ def test_compiled_fields_are_the_reference_fields_bit_for_bit(rows, cols, seed, 
     d[v] = min(d[v], d[u] + w(u, v)) by the same float64 additions. Several destinations in one
     call, the grid's corners among them; a limit at a node's exact distance keeps that node."""
     rng = np.random.default_rng(seed)
-    weights = _EdgeWeights.of(cost_grid(rng, rows, cols), cell)
+    weights = EdgeWeights.of(cost_grid(rng, rows, cols), cell)
     corners = [0, cols - 1, (rows - 1) * cols, rows * cols - 1]
     nodes = list(dict.fromkeys(corners + rng.integers(0, rows * cols, size=3).tolist()))
     whole = built(weights, nodes, np.inf, "compiled")
@@ -99,12 +99,12 @@ def test_a_field_is_the_route_round_a_wall_not_through_it(builder):
     (1 + (1 + 9) / 2 = 6), not the diagonal (sqrt 2 x 5 = 7.07)."""
     cost = np.ones((3, 3))
     cost[1, 1] = 9.0
-    field = built(_EdgeWeights.of(cost, 1.0), [0], np.inf, builder)[0]
+    field = built(EdgeWeights.of(cost, 1.0), [0], np.inf, builder)[0]
     assert field[2, 2] == pytest.approx(2 + math.sqrt(2), abs=1e-12)
     assert field[1, 1] == 6.0
     assert field[0, 2] == 2.0
     # Stopped at 2 m: the corners two steps away are kept, the one past the centre is not.
-    stopped = built(_EdgeWeights.of(cost, 1.0), [0], 2.0, builder)[0]
+    stopped = built(EdgeWeights.of(cost, 1.0), [0], 2.0, builder)[0]
     assert stopped[0, 2] == stopped[2, 0] == 2.0
     assert np.isinf(stopped[2, 2]) and np.isinf(stopped[1, 1])
 
@@ -113,14 +113,14 @@ def test_a_field_is_the_route_round_a_wall_not_through_it(builder):
 def test_nodes_walled_off_by_blocked_cells_are_unreachable(builder):
     cost = np.ones((4, 5))
     cost[:, 2] = np.inf  # a wall of blocked cells down the middle column
-    field = built(_EdgeWeights.of(cost, 2.0), [0, 2], np.inf, builder)
+    field = built(EdgeWeights.of(cost, 2.0), [0, 2], np.inf, builder)
     assert np.isfinite(field[0, :, :2]).all() and np.isinf(field[0, :, 2:]).all()
     assert field[0, 3, 1] == pytest.approx(2.0 * (2 + math.sqrt(2)), abs=1e-12)
     assert field[1, 0, 2] == 0.0 and np.isinf(np.delete(field[1].ravel(), 2)).all()
 
 
 def test_the_compiled_builder_refuses_a_node_off_the_grid_and_mismatched_arguments():
-    weights = _EdgeWeights.of(np.ones((3, 4)), 1.0)
+    weights = EdgeWeights.of(np.ones((3, 4)), 1.0)
     with pytest.raises(ValueError, match="not a node of 3 x 4"):
         built(weights, [12], np.inf, "compiled")
     with pytest.raises(ValueError, match="1 destinations but 2 limits"):
