@@ -14,8 +14,8 @@ d[v] = min(d[v], d[u] + w(u, v)) over the same float64 edge weights, whatever th
 relaxations (test). The compiled core's Dijkstra (``planning/_routes.pyx``) builds them for
 every caller, the batches of destinations of training and the in-process flights and an agent's
 one destination alike: faster than scipy's Dijkstra, and without the tens of MiB that importing
-scipy's graph module costs an agent (bench_policy's route field rows; BENCHMARKS.md, "Fleets of
-agent processes"). ``JAMNAV_PLANNER=reference`` sweeps them in numpy instead (``SweptFields``),
+scipy's graph module costs an agent (bench_policy's route field rows; BENCHMARKS.md, "Route
+fields compiled"). ``JAMNAV_PLANNER=reference`` sweeps them in numpy instead (``SweptFields``),
 the reference the compiled one is tested against. An agent told its next destination builds
 that field between decisions (``RouteGrid.prepare``).
 """
