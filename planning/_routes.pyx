@@ -43,18 +43,25 @@ cdef struct Queue:
     double *field
 
 
+cdef inline void put(Queue *queue, Py_ssize_t index, Py_ssize_t node) noexcept nogil:
+    queue.heap[index] = node
+    queue.place[node] = index
+
+
+cdef inline double key_at(Queue *queue, Py_ssize_t index) noexcept nogil:
+    return queue.field[queue.heap[index]]
+
+
 cdef inline void sift_up(Queue *queue, Py_ssize_t index) noexcept nogil:
     cdef Py_ssize_t node = queue.heap[index], parent
     cdef double key = queue.field[node]
     while index > 0:
         parent = (index - 1) >> 1
-        if queue.field[queue.heap[parent]] <= key:
+        if key_at(queue, parent) <= key:
             break
-        queue.heap[index] = queue.heap[parent]
-        queue.place[queue.heap[index]] = index
+        put(queue, index, queue.heap[parent])
         index = parent
-    queue.heap[index] = node
-    queue.place[node] = index
+    put(queue, index, node)
 
 
 cdef inline Py_ssize_t pop_nearest(Queue *queue) noexcept nogil:
@@ -69,15 +76,13 @@ cdef inline Py_ssize_t pop_nearest(Queue *queue) noexcept nogil:
         child = 2 * index + 1
         if child >= queue.size:
             break
-        if child + 1 < queue.size and queue.field[queue.heap[child + 1]] < queue.field[queue.heap[child]]:
+        if child + 1 < queue.size and key_at(queue, child + 1) < key_at(queue, child):
             child += 1
-        if key <= queue.field[queue.heap[child]]:
+        if key <= key_at(queue, child):
             break
-        queue.heap[index] = queue.heap[child]
-        queue.place[queue.heap[index]] = index
+        put(queue, index, queue.heap[child])
         index = child
-    queue.heap[index] = last
-    queue.place[last] = index
+    put(queue, index, last)
     return nearest
 
 
@@ -90,7 +95,7 @@ cdef inline void relax(Queue *queue, Py_ssize_t node, double reached, double lim
     if index == NOT_QUEUED:
         index = queue.size
         queue.size += 1
-        queue.heap[index] = node
+        put(queue, index, node)
     sift_up(queue, index)
 
 
@@ -105,8 +110,7 @@ cdef void fill_field(Queue *queue, const double[:, ::1] down, const double[:, ::
     for node in range(rows * cols):
         queue.field[node] = INFINITY
     queue.field[destination] = 0.0
-    queue.heap[0] = destination
-    queue.place[destination] = 0
+    put(queue, 0, destination)
     queue.size = 1
     while queue.size:
         node = pop_nearest(queue)
