@@ -1,6 +1,7 @@
-"""The planner's compiled core (planning/_lookahead.pyx); the rest of the build is in
-pyproject.toml. Portable flags only: a wheel built on one x86_64 CPU must run on any other
-(planning/_dense.h picks wider vector code when the module loads)."""
+"""The planner's compiled core (planning/_lookahead.pyx, the lookahead; planning/_routes.pyx, the
+route fields); the rest of the build is in pyproject.toml. Portable flags only: a wheel built on
+one x86_64 CPU must run on any other (planning/_dense.h picks wider vector code when the module
+loads)."""
 
 import importlib.util
 from pathlib import Path
@@ -14,14 +15,22 @@ _spec = importlib.util.spec_from_file_location("source_digest",
 _digest = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_digest)
 
-core = Extension(
-    "planning._lookahead",
-    ["planning/_lookahead.pyx"],
-    include_dirs=["planning"],
-    libraries=["mvec"],  # glibc's vector math (planning/_vector_math.h)
-    define_macros=[("PLANNING_SOURCE_DIGEST",
-                    f'"{_digest.source_digest(HERE / "planning")}"')],
-    extra_compile_args=["-O3"],
-)
 
-setup(ext_modules=cythonize([core], language_level=3))
+def compiled(name: str, **options) -> Extension:
+    """planning.<name> from planning/<name>.pyx, stamped with the digest of every compiled
+    source: a change to any of them makes every module stale."""
+    return Extension(
+        f"planning.{name}",
+        [f"planning/{name}.pyx"],
+        include_dirs=["planning"],
+        define_macros=[("PLANNING_SOURCE_DIGEST",
+                        f'"{_digest.source_digest(HERE / "planning")}"')],
+        extra_compile_args=["-O3"],
+        **options,
+    )
+
+
+setup(ext_modules=cythonize([
+    compiled("_lookahead", libraries=["mvec"]),  # glibc's vector math (planning/_vector_math.h)
+    compiled("_routes"),
+], language_level=3))

@@ -5,25 +5,27 @@ on one CPU thread; for the paper's method (one step), and for the shipped extend
 (route distances, safe cells, reciprocal others, and the scenario's deeper search for UAVs
 whose one-step choice is a trap). One UAV's decision alone, as an agent makes it: its time,
 and the Python and numpy calls the reference makes, whose fixed cost sets a floor under it.
-And what an agent's first decision of an episode adds: the route field to its new
-destination."""
+And the route fields the extended method reads, by each builder (``route_field_figures``)."""
 
 from __future__ import annotations
 
 import sys
 import time
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 
 from benchmarks.common import Figure, best_rate
 from cloud_service.rollout import LookaheadController, RasterMaps, perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
+from planning.compiled import compiled_module
 from planning.features import joint_state_size
 from planning.lookahead import CompiledLookahead
 from planning.maps import MAP_SPACING_M, LevelRaster, TrueMap
 from planning.networks import load_network
 from planning.reference import LookaheadPolicy
+from planning.routes import EdgeWeights, FieldBuilder, SweptFields
 from shared.paper import TABLE_I_JAMMERS, jammer_params
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
@@ -59,9 +61,7 @@ def run() -> list[Figure]:
     extended = {planner: kind(scenario, networks["extended"])
                 for planner, kind in PLANNERS.items()}
     figures += single_uav_figures(extended, world, perfect_maps(scenario))
-    figures.append(Figure("route field to one new destination, as an agent sweeps it, ms",
-                          single_route_field_ms(scenario), "ms", lower_is_better=True))
-    return figures
+    return figures + route_field_figures()
 
 
 SINGLE_UAV_REPEATS = 20
@@ -124,15 +124,76 @@ def _calls(work: Callable[[], object]) -> int:
 ROUTE_DESTINATIONS = 200
 
 
-def single_route_field_ms(scenario: Scenario) -> float:
-    """Mean time of the route field to each of ROUTE_DESTINATIONS distinct destinations, one at
-    a time (the numpy sweep an agent runs at its first decision of an episode), on the true
-    map with Table I's first jammer."""
+def route_field_figures() -> list[Figure]:
+    """The route fields to ROUTE_DESTINATIONS distinct destinations on the true map with
+    Table I's first jammer, by the compiled core, by the numpy sweeps of the reference and by
+    scipy's Dijkstra (which built the batches before the compiled core), in the same run: one
+    at a time on icc2021's grid, as an agent builds the field to its next destination, and all
+    in one call on the city's, as a batch of the in-process flights. Whole fields; each mean
+    time of a field the best of 3 repeats; the three builders' fields checked equal."""
+    figures = []
+    for name, one_at_a_time, label in (
+            ("icc2021", True, "route field, icc2021, one destination a call"),
+            ("city", False, f"route fields, city, {ROUTE_DESTINATIONS} destinations in one call")):
+        weights, nodes = _route_grid(load_scenario(name))
+        builders = {"compiled": partial(compiled_module("_routes").route_fields, *weights),
+                    "reference": SweptFields(weights), "scipy": _scipy_fields(weights)}
+        fields = [builder(nodes, np.full(len(nodes), np.inf)) for builder in builders.values()]
+        if not all(np.array_equal(other, fields[0]) for other in fields[1:]):
+            raise AssertionError(f"{name}: the builders' route fields differ")
+        us = {builder: _field_us(build, nodes, one_at_a_time)
+              for builder, build in builders.items()}
+        figures += [Figure(f"{label}, compiled, us", us["compiled"], "us", lower_is_better=True),
+                    Figure("  reference (numpy sweeps), us", us["reference"], "us",
+                           lower_is_better=True),
+                    Figure("  scipy's Dijkstra, us", us["scipy"], "us", lower_is_better=True),
+                    Figure("  reference / compiled", us["reference"] / us["compiled"], "x"),
+                    Figure("  scipy / compiled", us["scipy"] / us["compiled"], "x")]
+    return figures
+
+
+def _route_grid(scenario: Scenario) -> tuple[EdgeWeights, np.ndarray]:
+    """The edge weights of the scenario's routing grid on the true map with Table I's first
+    jammer, and ROUTE_DESTINATIONS distinct nodes of it."""
     truth = TrueMap(RadioModel(scenario), jammer_params(scenario, TABLE_I_JAMMERS[0]))
     routes = LevelRaster.sample(scenario, truth.level_at, MAP_SPACING_M).routes(scenario)
     nodes = np.random.default_rng(0).choice(routes.rows * routes.cols, ROUTE_DESTINATIONS,
                                             replace=False)
-    start = time.perf_counter()
-    for node in nodes:
-        routes.slots(node[None])  # each a new destination: swept, then cached
-    return 1000.0 * (time.perf_counter() - start) / ROUTE_DESTINATIONS
+    return routes.weights, nodes.astype(np.int64)
+
+
+def _scipy_fields(weights: EdgeWeights) -> FieldBuilder:
+    """scipy's Dijkstra on the same edges and weights, its sparse graph built beforehand."""
+    from scipy.sparse import coo_matrix  # noqa: PLC0415 (only this row needs scipy)
+    from scipy.sparse.csgraph import dijkstra  # noqa: PLC0415
+
+    rows, cols = weights.right.shape[0], weights.down.shape[1]
+    index = np.arange(rows * cols).reshape(rows, cols)
+    ends = ((index[:-1, :], index[1:, :], weights.down),
+            (index[:, :-1], index[:, 1:], weights.right),
+            (index[:-1, :-1], index[1:, 1:], weights.down_right),
+            (index[:-1, 1:], index[1:, :-1], weights.down_left))
+    graph = coo_matrix((np.concatenate([w.ravel() for _, _, w in ends]),
+                        (np.concatenate([a.ravel() for a, _, _ in ends]),
+                         np.concatenate([b.ravel() for _, b, _ in ends]))),
+                       shape=(rows * cols, rows * cols)).tocsr()
+
+    def build(nodes: np.ndarray, limits: np.ndarray) -> np.ndarray:
+        fields = dijkstra(graph, directed=False, indices=nodes, limit=float(limits.max()))
+        return fields.reshape(len(nodes), rows, cols)
+
+    return build
+
+
+def _field_us(build: FieldBuilder, nodes: np.ndarray, one_at_a_time: bool) -> float:
+    whole = np.full(len(nodes), np.inf)
+
+    def fields() -> int:
+        if one_at_a_time:
+            for node, limit in zip(nodes, whole, strict=True):
+                build(node[None], limit[None])
+        else:
+            build(nodes, whole)
+        return len(nodes)
+
+    return 1e6 / best_rate(fields, repeats=3, min_seconds=0.5)

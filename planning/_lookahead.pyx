@@ -29,8 +29,8 @@ cdef extern from "_dense.h" nogil:
                      const float *inp, float *out, int relu)
 
 
-# The build passes the sha256 of this file's source: planning.lookahead compares it with the
-# source beside it, so a module left from older source is refused, not run.
+# The build passes the sha256 of the compiled sources: planning.compiled compares it with the
+# sources beside it, so a module left from older source is refused, not run.
 cdef extern from *:
     """
     #ifndef PLANNING_SOURCE_DIGEST

@@ -3,19 +3,10 @@
 
 from __future__ import annotations
 
-import os
-
-from planning import PLANNER_VARIABLE, PLANNERS, PlannerError
+from planning.compiled import chosen_planner, compiled_module
 from planning.networks import ValueNetwork
 from planning.reference import LookaheadPolicy
 from shared.scenario import Scenario
-
-
-def chosen_planner() -> str:
-    choice = os.environ.get(PLANNER_VARIABLE, "compiled")
-    if choice not in PLANNERS:
-        raise PlannerError(f"{PLANNER_VARIABLE}={choice!r}: expected one of {', '.join(PLANNERS)}")
-    return choice
 
 
 def require_planner() -> type[LookaheadPolicy]:
@@ -27,6 +18,7 @@ def require_planner() -> type[LookaheadPolicy]:
     # and the reference flies without it.
     from planning.lookahead import CompiledLookahead  # noqa: PLC0415
 
+    compiled_module("_routes")  # the route fields' part of the core, checked as early
     return CompiledLookahead
 
 

@@ -8,12 +8,11 @@ training fly."""
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
-from planning import PlannerError
+from planning.compiled import compiled_module
 from planning.features import ABSENT_DISTANCE, joint_state_size
 from planning.maps import RasterMap, RouteFields
 from planning.networks import ValueNetwork
@@ -26,21 +25,11 @@ from planning.reference import (
     explored,
 )
 from planning.routes import REACH_FACTOR, REACH_MARGIN_M
-from planning.source_digest import source_digest
 from shared.kinematics import wrap_angle
 from shared.observation import CELL_CLEARANCE_M, Observation
 from shared.scenario import Scenario
 
-try:
-    from planning import _lookahead
-except ImportError as exc:
-    raise PlannerError(f"the planner's compiled core is not built ({exc}): run `make install`, "
-                       "or set JAMNAV_PLANNER=reference for the numpy planner") from None
-
-if source_digest(Path(__file__).parent) not in (None, _lookahead.SOURCE_DIGEST):
-    raise PlannerError("the planner's compiled core was built from other source than is beside "
-                       "it: run `make install`, or set JAMNAV_PLANNER=reference for the numpy "
-                       "planner")
+_lookahead = compiled_module("_lookahead")
 
 NO_ROUTES = RouteFields([], np.zeros(0, dtype=np.int64), np.zeros(0), 0.0, 0.0, 1.0)
 

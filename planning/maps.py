@@ -9,7 +9,7 @@ and training fly; ``RasterMap`` gives each UAV row its own raster.
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import NamedTuple, Protocol
 
 import numpy as np
@@ -161,10 +161,10 @@ class RasterMap:
         subset.which = self.which[rows]
         return subset
 
-    def sweep_ahead(self, destination: np.ndarray) -> Iterator[None]:
+    def prepare_route(self, destination: np.ndarray) -> None:
         """The route field to ``destination`` (2,) on the first raster (an agent's only one),
-        swept into its cache a line at a time (``RouteGrid.sweep_ahead``)."""
-        return self.first.routes(self.scenario).sweep_ahead(destination)
+        built into its cache (``RouteGrid.prepare``)."""
+        self.first.routes(self.scenario).prepare(destination)
 
     def route_fields(self, destination: np.ndarray, reach_m: np.ndarray,
                      whole: np.ndarray | None = None) -> RouteFields:

@@ -9,30 +9,32 @@ is a bilinear interpolation. This is the map-aware feature of the extended
 method: a one-step lookahead that reads it descends the route instead of walking into the
 first hole it meets.
 
-Two solvers give the same fields, bit for bit: both settle on the one fixpoint of
+Two builders give the same fields, bit for bit: both settle on the one fixpoint of
 d[v] = min(d[v], d[u] + w(u, v)) over the same float64 edge weights, whatever the order of the
-relaxations (test). scipy's Dijkstra, in C, is fastest for the batches of destinations that
-training and the in-process flights ask for; but importing scipy's graph module costs a process
-tens of MiB. An agent routes one UAV to one destination per map, so a single destination is
-swept in numpy instead (``_swept_fields``, slower than Dijkstra: bench_policy's route field
-row; BENCHMARKS.md, "Fleets of agent processes"), and an agent never loads scipy. An agent
-told its next destination sweeps that field ahead, a line at a time between decisions
-(``sweep_ahead``).
+relaxations (test). The compiled core's Dijkstra (``planning/_routes.pyx``) builds them for
+every caller, the batches of destinations of training and the in-process flights and an agent's
+one destination alike: faster than scipy's Dijkstra, and without the tens of MiB that importing
+scipy's graph module costs an agent (bench_policy's route field rows; BENCHMARKS.md, "Route
+fields compiled"). ``JAMNAV_PLANNER=reference`` sweeps them in numpy instead (``SweptFields``),
+the reference the compiled one is tested against. An agent told its next destination builds
+that field between decisions (``RouteGrid.prepare``).
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable, Generator, Iterator
+from collections.abc import Callable
+from functools import partial
 from typing import NamedTuple
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from planning.compiled import chosen_planner, compiled_module
 from shared.kinematics import clamp
 
 
-class _EdgeWeights(NamedTuple):
+class EdgeWeights(NamedTuple):
     """Length times mean crossing cost of every edge of the 8-connected grid, by direction:
     ``down[r, c]`` joins (r, c)-(r+1, c), ``right[r, c]`` (r, c)-(r, c+1), ``down_right[r, c]``
     (r, c)-(r+1, c+1) and ``down_left[r, c]`` (r, c+1)-(r+1, c)."""
@@ -43,7 +45,7 @@ class _EdgeWeights(NamedTuple):
     down_left: np.ndarray
 
     @classmethod
-    def of(cls, cost: np.ndarray, cell: float) -> _EdgeWeights:
+    def of(cls, cost: np.ndarray, cell: float) -> EdgeWeights:
         straight, diagonal = cell * 1.0, cell * float(np.hypot(1, 1))
         return cls(
             down=straight * (0.5 * (cost[:-1, :] + cost[1:, :])),
@@ -52,8 +54,8 @@ class _EdgeWeights(NamedTuple):
             down_left=diagonal * (0.5 * (cost[:-1, 1:] + cost[1:, :-1])),
         )
 
-    def transposed(self) -> _EdgeWeights:
-        return _EdgeWeights(self.right.T, self.down.T, self.down_right.T, self.down_left.T)
+    def transposed(self) -> EdgeWeights:
+        return EdgeWeights(self.right.T, self.down.T, self.down_right.T, self.down_left.T)
 
     def improvable(self, field: np.ndarray) -> bool:
         """Whether some edge still shortens ``field``: False only at the fixpoint."""
@@ -74,16 +76,67 @@ class _EdgeWeights(NamedTuple):
         return forward, backward
 
 
+# A builder of route fields: destination nodes (K,) int64 and their limits (K,) -> the fields
+# (K, rows, cols) float64, each infinite where the route is longer than its limit.
+FieldBuilder = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+class SweptFields:
+    """The reference builder of route fields, in numpy: each field by Gauss-Seidel sweeps until
+    no edge shortens it (2-4 rounds: about one per bend of the routes). A round sweeps the rows
+    down and up, then the columns right and left, each line relaxed from the one before it. The
+    two sweeps along an axis run at once, on two copies of the field stacked together (the
+    second upside down, so that it too runs first to last), and each node keeps the shorter of
+    the two: one numpy call relaxes a line of each, which makes a field cheaper than sweeping
+    them one after the other (BENCHMARKS.md, "Fleets of agent processes")."""
+
+    def __init__(self, weights: EdgeWeights):
+        self.weights = weights
+        # The weights as the sweeps read them: rows, then columns, the second copy upside down.
+        self.lines = tuple(
+            np.stack([forward, backward[::-1]]) for forward, backward in
+            (weights.from_previous_line(), weights.transposed().from_previous_line()))
+
+    def __call__(self, nodes: np.ndarray, limits: np.ndarray) -> np.ndarray:
+        fields = np.stack([self.field(node) for node in nodes.tolist()])
+        fields[fields > limits[:, None, None]] = np.inf  # as Dijkstra stopped at the limit
+        return fields
+
+    def field(self, node: int) -> np.ndarray:
+        """The whole field (rows, cols) to ``node``."""
+        # A border of infinity, so that every line reads three neighbours of each column.
+        padded = np.full((self.weights.right.shape[0] + 2, self.weights.down.shape[1] + 2),
+                         np.inf)
+        field = padded[1:-1, 1:-1]
+        field.flat[node] = 0.0
+        while True:
+            for lines, weights in zip((padded, padded.T), self.lines, strict=True):
+                both_ways = np.stack([lines, lines[::-1]])
+                _sweep_lines(both_ways, weights)
+                np.minimum(both_ways[0], both_ways[1][::-1], out=lines)
+            if not self.weights.improvable(field):
+                return field
+
+
+def field_builder(weights: EdgeWeights) -> FieldBuilder:
+    """The builder of route fields on ``weights`` that ``JAMNAV_PLANNER`` names: the compiled
+    core's Dijkstra, or the numpy sweeps of the reference."""
+    if chosen_planner() == "reference":
+        return SweptFields(weights)
+    return partial(compiled_module("_routes").route_fields, *weights)
+
+
 # Distance fields a route grid keeps by default: every destination of a batch of environments
 # (an in-process evaluation's whole fleet, training's environments in flight).
 FIELDS_KEPT = 4096
-# A batch of fields from Dijkstra stops where the route grows longer than a reach: this many
-# times the straight distance from the farthest position asked about to the destination, plus
-# the margin, rounded up to REACH_STEP_M (one Dijkstra call per reach). Dijkstra settles nodes
-# in the order of their distance, so every node within the reach has its exact distance and
-# every node beyond reads infinity; a query that reads one has its field computed whole. So the
-# values read are those of the whole field, bit for bit, and most fields cover a disc about
-# the trip instead of the map: on a large map most of the work is saved.
+# A field computed for trips stops where the route grows longer than a reach: this many times
+# the straight distance from the farthest position asked about to the destination, plus the
+# margin, rounded up to REACH_STEP_M. Dijkstra settles nodes in the order of their distance, so
+# every node within the reach has its exact distance and every node beyond reads infinity; a
+# query that reads one has its field computed whole (a decision that reads one, every field of
+# its batch that stops at a reach: rounding up keeps that rare). So the values read are those
+# of the whole field, bit for bit, and most fields cover a disc about the trip instead of the
+# map: on a large map most of the work is saved.
 REACH_FACTOR = 1.5
 REACH_MARGIN_M = 30.0
 REACH_STEP_M = 50.0
@@ -96,9 +149,8 @@ class RouteGrid:
                  uncovered_cost: float, cache_size: int = FIELDS_KEPT):
         self.rows, self.cols = covered.shape
         self.x0, self.y0, self.cell = x0, y0, cell
-        self.weights = _EdgeWeights.of(np.where(covered, 1.0, uncovered_cost), cell)
-        self._graph = None  # scipy's sparse form of the weights, built on first batch
-        self._lines = None  # the weights as the sweeps read them, built on first sweep
+        self.weights = EdgeWeights.of(np.where(covered, 1.0, uncovered_cost), cell)
+        self._build = field_builder(self.weights)
         # Destination node -> its slot in ``store``, least recently used first. One array of
         # fields read by fancy indexing: stacking them per query would copy every field at
         # every step (43 MB a step with 256 UAVs on a 400 m map).
@@ -119,16 +171,14 @@ class RouteGrid:
               reach_m: Callable[[], np.ndarray] | None = None) -> np.ndarray:
         """Slots in ``store`` of the distance fields to each destination node, computed on
         first use (once for a node asked for twice); beyond cache_size the least recently
-        used field's slot is reused. With ``reach_m`` (giving one route length per node) a
-        batch computed by Dijkstra may stop beyond it (see REACH_FACTOR)."""
+        used field's slot is reused. With ``reach_m`` (giving one route length per node) the
+        fields computed may stop beyond it (see REACH_FACTOR)."""
         wanted = nodes.tolist()
         for node in wanted:
             if node in self.cache:
                 self.cache.move_to_end(node)
         missing = list(dict.fromkeys(node for node in wanted if node not in self.cache))
-        if len(missing) == 1:
-            self._keep(missing[0], self._swept_fields(missing[0])[0])
-        elif missing:
+        if missing:
             reach = {}
             if reach_m is not None:
                 for node, metres in zip(wanted, reach_m().tolist(), strict=True):
@@ -137,27 +187,24 @@ class RouteGrid:
         return np.array([self.cache[node] for node in wanted], dtype=np.int64)
 
     def _compute(self, nodes: list[int], reach_m: list[float]) -> None:
-        """Dijkstra's fields to ``nodes`` into the cache, each stopped at its reach rounded up
-        to REACH_STEP_M (infinite: whole), one call per distinct reach."""
-        limits = np.ceil(np.asarray(reach_m) / REACH_STEP_M) * REACH_STEP_M
-        for limit in np.unique(limits).tolist():
-            batch = [node for node, own in zip(nodes, limits.tolist(), strict=True)
-                     if own == limit]
-            for node, field in zip(batch, self._dijkstra(batch, limit), strict=True):
-                self._keep(node, field)
-                if np.isfinite(limit):
-                    self._partial.add(node)
-
-    def sweep_ahead(self, destination: np.ndarray) -> Iterator[None]:
-        """Sweep the field to ``destination`` (2,) into the cache one line at a time, pausing
-        after each: an agent told its next mission prepares the field between decisions, so
-        that the new mission's first decision finds it ready. Nothing to do when cached."""
-        node = int(self.node_of(np.asarray(destination, dtype=np.float64)))
-        if node in self.cache:
+        """The fields to ``nodes`` into the cache, each stopped at its reach rounded up to
+        REACH_STEP_M (infinite: whole)."""
+        if not nodes:
             return
-        field = yield from self._sweeping(node)
-        if node not in self.cache:  # a decision may have needed it first
+        limits = np.ceil(np.asarray(reach_m, dtype=np.float64) / REACH_STEP_M) * REACH_STEP_M
+        fields = self._build(np.asarray(nodes, dtype=np.int64), limits)
+        for node, field, limit in zip(nodes, fields, limits.tolist(), strict=True):
             self._keep(node, field)
+            if np.isfinite(limit):
+                self._partial.add(node)
+
+    def prepare(self, destination: np.ndarray) -> None:
+        """The whole field to ``destination`` (2,) into the cache, unless one is there: an
+        agent told its next mission builds it between decisions, so that the new mission's
+        first decision finds it ready."""
+        node = int(self.node_of(np.asarray(destination, dtype=np.float64)))
+        if node not in self.cache:
+            self._compute([node], [np.inf])
 
     def _keep(self, node: int, field: np.ndarray) -> None:
         slot = self.cache.get(node)
@@ -166,63 +213,6 @@ class RouteGrid:
         self.store[slot] = field.reshape(self.rows, self.cols)
         self.cache[node] = slot
         self._partial.discard(node)
-
-    def _dijkstra(self, nodes: list[int], limit: float = np.inf) -> np.ndarray:
-        from scipy.sparse import coo_matrix  # noqa: PLC0415 (see the module docstring)
-        from scipy.sparse.csgraph import dijkstra  # noqa: PLC0415
-
-        if self._graph is None:
-            index = np.arange(self.rows * self.cols).reshape(self.rows, self.cols)
-            w = self.weights
-            pairs = (  # (nodes at one end, nodes at the other, weights), each edge once
-                (index[:-1, :], index[1:, :], w.down),
-                (index[:, :-1], index[:, 1:], w.right),
-                (index[:-1, :-1], index[1:, 1:], w.down_right),
-                (index[:-1, 1:], index[1:, :-1], w.down_left),
-            )
-            n = self.rows * self.cols
-            self._graph = coo_matrix(
-                (np.concatenate([weight.ravel() for _, _, weight in pairs]),
-                 (np.concatenate([a.ravel() for a, _, _ in pairs]),
-                  np.concatenate([b.ravel() for _, b, _ in pairs]))),
-                shape=(n, n),
-            ).tocsr()
-        return dijkstra(self._graph, directed=False, indices=nodes, limit=limit)
-
-    def _swept_fields(self, node: int) -> np.ndarray:
-        """The field (1, rows, cols) to one destination, swept at once."""
-        sweep = self._sweeping(node)
-        while True:
-            try:
-                next(sweep)
-            except StopIteration as swept:
-                return swept.value[None]
-
-    def _sweeping(self, node: int) -> Generator[None, None, np.ndarray]:
-        """The field to one destination by Gauss-Seidel sweeps until no edge shortens it
-        (2-4 rounds: about one per bend of the routes), pausing after each line. A round
-        sweeps the rows down and up, then the columns right and left, each line relaxed from
-        the one before it. The two sweeps along an axis run at once, on two copies of the
-        field stacked together (the second upside down, so that it too runs first to last),
-        and each node keeps the shorter of the two: one numpy call relaxes a line of each,
-        which makes a field cheaper than sweeping them one after the other (BENCHMARKS.md,
-        "Fleets of agent processes")."""
-        # A border of infinity, so that every line reads three neighbours of each column.
-        padded = np.full((self.rows + 2, self.cols + 2), np.inf)
-        field = padded[1:-1, 1:-1]
-        field.flat[node] = 0.0
-        if self._lines is None:
-            self._lines = tuple(
-                np.stack([forward, backward[::-1]]) for forward, backward in
-                (self.weights.from_previous_line(),
-                 self.weights.transposed().from_previous_line()))
-        while True:
-            for lines, weights in zip((padded, padded.T), self._lines, strict=True):
-                both_ways = np.stack([lines, lines[::-1]])
-                yield from _sweep_lines(both_ways, weights)
-                np.minimum(both_ways[0], both_ways[1][::-1], out=lines)
-            if not self.weights.improvable(field):
-                return field
 
     def _free_slot(self) -> int:
         if len(self.cache) >= self.cache_size:
@@ -242,7 +232,7 @@ class RouteGrid:
         (N, 2): the field interpolated at ``xy`` plus the last stretch to the exact point."""
         nodes = self.node_of(destination)
 
-        def reach() -> np.ndarray:  # only when a batch of fields is computed
+        def reach() -> np.ndarray:  # only when a field is computed
             rows = (-1,) + (1,) * (xy.ndim - 2)
             straight = np.hypot(xy[..., 0] - destination[:, 0].reshape(rows),
                                 xy[..., 1] - destination[:, 1].reshape(rows))
@@ -298,11 +288,10 @@ class RouteGrid:
             )
 
 
-def _sweep_lines(stacked: np.ndarray, weights: np.ndarray) -> Iterator[None]:
+def _sweep_lines(stacked: np.ndarray, weights: np.ndarray) -> None:
     """Relax every line of each padded field of ``stacked`` (copies, line, column), in place
     and first to last, from the line before it, by that copy's ``weights`` (copies, lines - 1,
-    columns, 3) in the form of ``from_previous_line``; the borders stay infinite. Pauses
-    after each line."""
+    columns, 3) in the form of ``from_previous_line``; the borders stay infinite."""
     lines = stacked.shape[1] - 2
     neighbours = sliding_window_view(stacked, 3, axis=2)  # [copy, line, c] = columns c-1..c+1
     reached = np.empty((stacked.shape[0], *neighbours.shape[2:]))
@@ -313,4 +302,3 @@ def _sweep_lines(stacked: np.ndarray, weights: np.ndarray) -> Iterator[None]:
         np.minimum(best, reached[..., 2], out=best)
         here = stacked[:, line, 1:-1]
         np.minimum(here, best, out=here)
-        yield

@@ -1,4 +1,4 @@
-"""Which source the compiled core was built from: the build stamps the module with this digest,
+"""Which source the compiled core was built from: the build stamps each module with this digest,
 and the planner refuses a module whose stamp differs from the source beside it."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-COMPILED_SOURCES = ("_lookahead.pyx", "_dense.h", "_vector_math.h")
+COMPILED_SOURCES = ("_lookahead.pyx", "_routes.pyx", "_dense.h", "_vector_math.h")
 
 
 def source_digest(directory: Path) -> str | None:

@@ -47,8 +47,8 @@ def test_an_agent_imports_and_flies_without_torch(scenario):
     assert done.returncode == 0, done.stderr
     flown = json.loads(done.stdout.splitlines()[-1])
     assert flown["torch"] == []
-    # An agent is sent its neighbours (the world's k-d tree would cost it 7.5 MiB) and sweeps
-    # its one route field in numpy (scipy's Dijkstra would cost 31 MiB).
+    # An agent is sent its neighbours (the world's k-d tree would cost it 7.5 MiB) and builds
+    # its route fields in the compiled core (scipy's Dijkstra would cost 31 MiB).
     assert flown["scipy"] == []
     assert 0.0 <= flown["speed"] <= scenario.uav.max_speed_mps
 

@@ -176,16 +176,16 @@ def test_an_agent_refuses_bad_weights_flies_on_with_the_old_ones_and_reports_it(
 def test_an_agent_told_its_next_mission_has_that_route_ready_before_its_first_decision(
         scenario, tmp_path, monkeypatch):
     """The world announces each UAV's next destination with its observations, and the agent
-    sweeps that route field between decisions: with one map all run long, only the very first
-    decision sweeps a field itself (three episodes: three such sweeps without it)."""
-    decision_sweeps = []
-    swept = RouteGrid._swept_fields
+    builds that route field between decisions: with one map all run long, only the very first
+    decision builds a field itself (three episodes: three such fields without it)."""
+    decision_builds = []
+    slots = RouteGrid.slots
 
-    def counted(self, node):
-        decision_sweeps.append(node)
-        return swept(self, node)
+    def counted(self, nodes, reach_m=None):
+        decision_builds.extend(node for node in nodes.tolist() if node not in self.cache)
+        return slots(self, nodes, reach_m)
 
-    monkeypatch.setattr(RouteGrid, "_swept_fields", counted)
+    monkeypatch.setattr(RouteGrid, "slots", counted)
     announced, flown = {}, {}
     with running(scenario, tmp_path, mode="perfect", uavs=1, jammer=None,
                  episodes=3) as system:
@@ -196,7 +196,7 @@ def test_an_agent_told_its_next_mission_has_that_route_ready_before_its_first_de
 
         system.sessions[0].declare_subscriber(system.topics.observation(0), seen)
         wait_until(lambda: system.world.finished, 120)
-    assert len(decision_sweeps) == 1
+    assert len(decision_builds) == 1
     # What was announced is what was flown next: missions come from each episode's seed.
     pairs = [(announced[episode], flown[episode + 1]) for episode in announced
              if episode + 1 in flown]

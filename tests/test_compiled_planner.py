@@ -277,28 +277,43 @@ def test_a_scripted_network_is_refused_by_the_compiled_planner(scenario):
         CompiledLookahead(scenario, Scripted(network.architecture(), network.tensors))
 
 
-# Imports the compiled planner with its core missing or stamped from other source; prints
-# the error's one line.
+# Asks for the compiled planner, or a route grid, with a module of the core missing or stamped
+# from other source; prints the error's one line.
 BROKEN_CORE = """
 import json, sys
+import numpy as np
 import planning.source_digest
-if sys.argv[1] == "missing":
-    sys.modules["planning._lookahead"] = None
+fault, module, asked = sys.argv[1:]
+if fault == "missing":
+    sys.modules[f"planning.{module}"] = None
 else:
     planning.source_digest.source_digest = lambda directory: "other source"
 try:
-    import planning.lookahead
+    if asked == "planner":
+        from planning.chosen import require_planner
+        require_planner()
+    else:
+        from planning.routes import RouteGrid
+        RouteGrid(np.ones((3, 3), dtype=bool), 0.0, 0.0, 1.0, 4.0)
 except Exception as exc:
     print(json.dumps([type(exc).__name__, str(exc)]))
 """
 
 
-@pytest.mark.parametrize("fault", ["missing", "stale"])
-def test_a_missing_or_stale_core_is_an_error_naming_the_fix(fault):
-    done = subprocess.run([sys.executable, "-c", BROKEN_CORE, fault], cwd=ROOT,
-                          capture_output=True, text=True, timeout=60)
+@pytest.mark.parametrize(("fault", "module", "asked"), [
+    ("missing", "_lookahead", "planner"), ("missing", "_routes", "planner"),
+    ("missing", "_routes", "routes"), ("stale", "_lookahead", "planner"),
+    ("stale", "_routes", "routes")])
+def test_a_missing_or_stale_core_is_an_error_naming_the_fix(fault, module, asked):
+    """A process that asks for the compiled planner is stopped as it starts, whichever module
+    of its core is at fault, and a route grid is never built by the reference instead."""
+    done = subprocess.run([sys.executable, "-c", BROKEN_CORE, fault, module, asked], cwd=ROOT,
+                          capture_output=True, text=True, timeout=60,
+                          env={k: v for k, v in os.environ.items() if k != PLANNER_VARIABLE})
     kind, message = json.loads(done.stdout)
     assert kind == "PlannerError" and "make install" in message and "\n" not in message
+    if fault == "missing":
+        assert module in message
 
 
 def test_jamnav_reports_a_bad_planner_in_one_line():

@@ -7,7 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from planning.routes import RouteGrid
+from planning import PLANNER_VARIABLE
+from planning.compiled import compiled_module
+from planning.routes import EdgeWeights, RouteGrid, SweptFields
 
 
 def grid(covered, cost=4.0):
@@ -47,56 +49,111 @@ def test_rows_read_their_own_destination_and_fields_are_cached():
     assert len(routes.cache) == 2
 
 
-@settings(max_examples=40, deadline=None)
-@given(rows=st.integers(2, 24), cols=st.integers(2, 24), seed=st.integers(0, 2**32 - 1),
-       cost=st.floats(1.0, 60.0), cell=st.sampled_from([0.5, 1.0, 2.0, 3.7]))
-def test_the_numpy_sweeps_and_dijkstra_give_the_same_field_bit_for_bit(rows, cols, seed, cost,
-                                                                      cell):
-    """An agent's single destination is swept in numpy, a batch goes to scipy's Dijkstra: on
-    any map they must agree exactly, or an agent would fly other routes than the evaluation."""
+COMPILED = compiled_module("_routes")
+
+
+def built(weights: EdgeWeights, nodes, limits, builder: str) -> np.ndarray:
+    nodes = np.asarray(nodes, dtype=np.int64)
+    limits = np.broadcast_to(np.asarray(limits, dtype=np.float64), nodes.shape).copy()
+    if builder == "compiled":
+        return COMPILED.route_fields(*weights, nodes, limits)
+    return SweptFields(weights)(nodes, limits)
+
+
+def cost_grid(rng: np.random.Generator, rows: int, cols: int) -> np.ndarray:
+    """Crossing costs of every kind a field meets: covered (1), uncovered (one dearer cost),
+    costs of their own, and blocked cells (infinite) that may wall nodes off altogether."""
+    kind = rng.choice(4, size=(rows, cols), p=rng.dirichlet(np.ones(4)))
+    return np.choose(kind, [np.ones((rows, cols)), np.full((rows, cols), rng.uniform(1.5, 60)),
+                            rng.uniform(1.0, 60.0, size=(rows, cols)),
+                            np.full((rows, cols), np.inf)])
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows=st.integers(1, 24), cols=st.integers(1, 24), seed=st.integers(0, 2**32 - 1),
+       cell=st.sampled_from([0.5, 1.0, 2.0, 3.7]))
+def test_compiled_fields_are_the_reference_fields_bit_for_bit(rows, cols, seed, cell):
+    """The compiled Dijkstra and the numpy sweeps must agree exactly on any grid, whole or
+    stopped at a limit, or the planners would fly other routes: both reach the one fixpoint of
+    d[v] = min(d[v], d[u] + w(u, v)) by the same float64 additions. Several destinations in one
+    call, the grid's corners among them; a limit at a node's exact distance keeps that node."""
     rng = np.random.default_rng(seed)
-    covered = rng.random((rows, cols)) < rng.uniform(0.3, 1.0)
-    routes = RouteGrid(covered, 0.0, 0.0, cell, cost)
-    destinations = rng.choice(rows * cols, size=min(3, rows * cols), replace=False).tolist()
-    batch = routes._dijkstra(destinations)
-    for node, expected in zip(destinations, batch, strict=True):
-        np.testing.assert_array_equal(routes._swept_fields(node)[0].ravel(), expected)
+    weights = EdgeWeights.of(cost_grid(rng, rows, cols), cell)
+    corners = [0, cols - 1, (rows - 1) * cols, rows * cols - 1]
+    nodes = list(dict.fromkeys(corners + rng.integers(0, rows * cols, size=3).tolist()))
+    whole = built(weights, nodes, np.inf, "compiled")
+    np.testing.assert_array_equal(whole, built(weights, nodes, np.inf, "reference"))
+    finite = whole[np.isfinite(whole)]
+    limits = rng.choice(finite, size=len(nodes)) * rng.choice([1.0, 0.5], size=len(nodes))
+    stopped = built(weights, nodes, limits, "compiled")
+    np.testing.assert_array_equal(stopped, built(weights, nodes, limits, "reference"))
+    beyond = whole > limits[:, None, None]
+    np.testing.assert_array_equal(stopped, np.where(beyond, np.inf, whole))
 
 
-def test_a_swept_field_is_the_route_round_a_wall_not_through_it():
+@pytest.mark.parametrize("builder", ["compiled", "reference"])
+def test_a_field_is_the_route_round_a_wall_not_through_it(builder):
     """Hand-computed: a 3 x 3 grid of 1 m cells whose centre is uncovered (cost 9). To the
     opposite corner: a step, a diagonal past the centre, a step (2 + sqrt 2), not through the
     centre (2 x sqrt 2 x (1 + 9) / 2). Into the centre: a step then a half-covered one
     (1 + (1 + 9) / 2 = 6), not the diagonal (sqrt 2 x 5 = 7.07)."""
-    covered = np.ones((3, 3), dtype=bool)
-    covered[1, 1] = False
-    field = RouteGrid(covered, 0.0, 0.0, 1.0, 9.0)._swept_fields(0)[0]
+    cost = np.ones((3, 3))
+    cost[1, 1] = 9.0
+    field = built(EdgeWeights.of(cost, 1.0), [0], np.inf, builder)[0]
     assert field[2, 2] == pytest.approx(2 + math.sqrt(2), abs=1e-12)
     assert field[1, 1] == 6.0
     assert field[0, 2] == 2.0
+    # Stopped at 2 m: the corners two steps away are kept, the one past the centre is not.
+    stopped = built(EdgeWeights.of(cost, 1.0), [0], 2.0, builder)[0]
+    assert stopped[0, 2] == stopped[2, 0] == 2.0
+    assert np.isinf(stopped[2, 2]) and np.isinf(stopped[1, 1])
 
 
-def test_a_field_swept_ahead_a_line_at_a_time_is_the_field_a_decision_would_sweep():
-    """An agent sweeps its next destination's field between decisions, stopping whenever an
-    observation waits: paused and resumed, the field it leaves in the cache is the one the
-    decision would have swept, and a field already cached costs nothing."""
+@pytest.mark.parametrize("builder", ["compiled", "reference"])
+def test_nodes_walled_off_by_blocked_cells_are_unreachable(builder):
+    cost = np.ones((4, 5))
+    cost[:, 2] = np.inf  # a wall of blocked cells down the middle column
+    field = built(EdgeWeights.of(cost, 2.0), [0, 2], np.inf, builder)
+    assert np.isfinite(field[0, :, :2]).all() and np.isinf(field[0, :, 2:]).all()
+    assert field[0, 3, 1] == pytest.approx(2.0 * (2 + math.sqrt(2)), abs=1e-12)
+    assert field[1, 0, 2] == 0.0 and np.isinf(np.delete(field[1].ravel(), 2)).all()
+
+
+def test_the_compiled_builder_refuses_a_node_off_the_grid_and_mismatched_arguments():
+    weights = EdgeWeights.of(np.ones((3, 4)), 1.0)
+    with pytest.raises(ValueError, match="not a node of 3 x 4"):
+        built(weights, [12], np.inf, "compiled")
+    with pytest.raises(ValueError, match="1 destinations but 2 limits"):
+        COMPILED.route_fields(*weights, np.array([0]), np.array([1.0, 2.0]))
+    with pytest.raises(ValueError, match="different grids"):
+        COMPILED.route_fields(*weights[:3], weights.down_right[:, 1:].copy(), np.array([0]),
+                              np.array([1.0]))
+
+
+def test_the_planner_variable_chooses_the_builder_of_route_fields(monkeypatch):
+    monkeypatch.delenv(PLANNER_VARIABLE, raising=False)
+    assert grid(np.ones((3, 3)))._build.func is COMPILED.route_fields
+    monkeypatch.setenv(PLANNER_VARIABLE, "reference")
+    assert isinstance(grid(np.ones((3, 3)))._build, SweptFields)
+
+
+def test_a_field_prepared_ahead_is_the_field_a_decision_would_build():
+    """An agent builds its next destination's field between decisions: the decision then
+    reads that field, the one it would have built, and builds none; a field already cached
+    costs nothing."""
     rng = np.random.default_rng(4)
     covered = rng.random((17, 13)) < 0.7
     ahead, direct = grid(covered, cost=9.0), grid(covered, cost=9.0)
     destination = np.array([7.2, 11.6])
-    sweep = ahead.sweep_ahead(destination)
-    lines = 0
-    for _ in sweep:  # paused after every line: a caller may stop anywhere
-        lines += 1
-        assert not ahead.cache  # nothing kept until the field is done
-    # At least two rounds (one to spread, one to confirm), each a sweep of every row and
-    # every column but the first.
-    assert lines >= 2 * ((17 - 1) + (13 - 1))
+    ahead.prepare(destination)
+    assert len(ahead.cache) == 1 and not ahead._partial  # whole: no reach is known ahead
+    store = ahead.store.copy()
     xy = rng.uniform(0, 12, size=(1, 40, 2))
     np.testing.assert_array_equal(ahead.distance(xy, destination[None]),
                                   direct.distance(xy, destination[None]))
-    assert len(ahead.cache) == 1  # the decision found it: no second field
-    assert list(ahead.sweep_ahead(destination)) == []
+    assert len(ahead.cache) == 1
+    ahead.prepare(destination)
+    np.testing.assert_array_equal(ahead.store, store)
 
 
 @settings(max_examples=30, deadline=None)

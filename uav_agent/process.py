@@ -25,7 +25,6 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -111,11 +110,11 @@ class Models:
         return radio_map
 
     def _route_ahead(self, radio_map: RasterMap) -> None:
-        """Sweep the route field to where the UAV flies now on a new map, with its raster:
-        the first decision on the map would sweep it otherwise."""
+        """Build the route field to where the UAV flies now on a new map, with its raster:
+        the first decision on the map would build it otherwise."""
         destination, policy = self.destination, self.policy
         if destination is not None and policy is not None and policy.options.route_distance:
-            deque(radio_map.sweep_ahead(np.array(destination, dtype=np.float64)), maxlen=0)
+            radio_map.prepare_route(np.array(destination, dtype=np.float64))
 
     def commit(self, update: ValueWeights | SinrMap,
                built: LookaheadPolicy | RasterMap | None) -> None:
@@ -202,10 +201,8 @@ class AgentService:
         self.timings_us: deque[float] = deque(maxlen=TIMINGS_KEPT)
         self.cpu_us: deque[float] = deque(maxlen=TIMINGS_KEPT)
         self.decisions = 0
-        # The map and the next destination whose route field is being swept between decisions,
-        # and the sweep itself (None once done).
+        # The map and the next destination whose route field was last built between decisions.
         self.ahead: tuple[RasterMap, tuple[float, float]] | None = None
-        self.ahead_lines: Iterator[None] | None = None
         self.episode: int | None = None
         self.step: int | None = None
         self.upload_every = upload_every
@@ -315,25 +312,19 @@ class AgentService:
             self._act(arrived, observation)
             for _, each in seen:
                 self._measure(each)
-            self._sweep_ahead(observation)
+            self._prepare_next_route(observation)
 
-    def _sweep_ahead(self, observation: AgentObservation) -> None:
-        """Sweep the route field to the UAV's next destination on the map in use, a line at a
-        time while no observation waits: the next mission's first decision then finds it ready
-        instead of sweeping it (which made those decisions an agent's slowest). Only
-        the extended method reads route fields."""
+    def _prepare_next_route(self, observation: AgentObservation) -> None:
+        """Build the route field to the UAV's next destination on the map in use, between
+        decisions while no observation waits: the next mission's first decision then finds it
+        ready instead of building it (which made those decisions an agent's slowest). Only the
+        extended method reads route fields."""
         radio_map, destination = self.models.radio_map, observation.next_destination
         if destination is None or not self.models.policy.options.route_distance:
             return
-        if self.ahead != (radio_map, destination):
+        if self.ahead != (radio_map, destination) and self.observations.empty():
             self.ahead = (radio_map, destination)
-            self.ahead_lines = radio_map.sweep_ahead(np.array(destination, dtype=np.float64))
-        if self.ahead_lines is None:
-            return
-        for _ in self.ahead_lines:
-            if not self.observations.empty():
-                return
-        self.ahead_lines = None
+            radio_map.prepare_route(np.array(destination, dtype=np.float64))
 
     def _prepare_updates(self, stop: threading.Event) -> None:
         """Build what each new version is flown with, beside the deciding thread."""
