@@ -164,9 +164,22 @@
     }
   }
 
-  // Each jammer the cloud estimated: a dashed ellipse two standard deviations wide.
+  // Each jammer the cloud estimated: a dashed ellipse two standard deviations wide, and where
+  // the cloud follows one that moves, an arrow to where it will be in ESTIMATE_ARROW_S.
+  const ESTIMATE_ARROW_S = 5;
+
   function estimatedJammers(estimate) {
     return estimate && estimate.present ? [estimate, ...(estimate.others || [])] : [];
+  }
+
+  function drawArrowHead(ax, ay, bx, by) {
+    const angle = Math.atan2(by - ay, bx - ax);
+    ctx.beginPath();
+    ctx.moveTo(bx, by);
+    ctx.lineTo(bx - 12 * Math.cos(angle - 0.4), by - 12 * Math.sin(angle - 0.4));
+    ctx.moveTo(bx, by);
+    ctx.lineTo(bx - 12 * Math.cos(angle + 0.4), by - 12 * Math.sin(angle + 0.4));
+    ctx.stroke();
   }
 
   function drawJammers(frame) {
@@ -180,6 +193,15 @@
                   Math.max(6, metres(2 * estimate.sd_y_m)), 0, 0, 2 * Math.PI);
       ctx.stroke();
       ctx.setLineDash([]);
+      if (estimate.vx_mps !== null && estimate.vx_mps !== undefined) {
+        const [qx, qy] = toCanvas(estimate.x + ESTIMATE_ARROW_S * estimate.vx_mps,
+                                  estimate.y + ESTIMATE_ARROW_S * estimate.vy_mps);
+        ctx.beginPath();
+        ctx.moveTo(px, py);
+        ctx.lineTo(qx, qy);
+        ctx.stroke();
+        drawArrowHead(px, py, qx, qy);
+      }
     }
     for (const jammer of frame.jammers) drawJammer(jammer);
   }
@@ -197,13 +219,7 @@
       ctx.stroke();
       ctx.setLineDash([]);
       const [[ax, ay], [bx, by]] = corners.slice(-2);
-      const angle = Math.atan2(by - ay, bx - ax);
-      ctx.beginPath();
-      ctx.moveTo(bx, by);
-      ctx.lineTo(bx - 12 * Math.cos(angle - 0.4), by - 12 * Math.sin(angle - 0.4));
-      ctx.moveTo(bx, by);
-      ctx.lineTo(bx - 12 * Math.cos(angle + 0.4), by - 12 * Math.sin(angle + 0.4));
-      ctx.stroke();
+      drawArrowHead(ax, ay, bx, by);
     }
     const [px, py] = dragged(jammer);
     ctx.fillStyle = jammer.on ? COLOURS.collision : "#888888";
@@ -296,7 +312,9 @@
     show("estimate-text", !e ? "" : e.present
       ? `Cloud's estimate (map v${e.map_version}): ` + estimatedJammers(e).map((j) =>
         `${j.id}: (${j.x.toFixed(1)} ± ${j.sd_x_m.toFixed(1)}, `
-        + `${j.y.toFixed(1)} ± ${j.sd_y_m.toFixed(1)}) m, ${j.power_w.toFixed(2)} W`).join("; ")
+        + `${j.y.toFixed(1)} ± ${j.sd_y_m.toFixed(1)}) m, ${j.power_w.toFixed(2)} W`
+        + (j.vx_mps === null || j.vx_mps === undefined ? ""
+          : `, moving (${j.vx_mps.toFixed(1)}, ${j.vy_mps.toFixed(1)}) m/s`)).join("; ")
       : `Cloud's estimate (map v${e.map_version}): no jammer`);
     for (const [name, count] of Object.entries(frame.counters)) show(`n-${name}`, count);
   }
