@@ -79,7 +79,9 @@ def posterior_hypotheses(estimate: JammerEstimate) -> JammerHypotheses:
     principal axes and its power (dB), the others where estimated. For one jammer these are
     the sigma points of its posterior, which share its mean and covariance. Weighed against
     these, a report along a zone edge the estimate is unsure of counts as the uncertainty
-    allows, not as if the edge were exact."""
+    allows, not as if the edge were exact. An estimate of no jammer is its one hypothesis."""
+    if not estimate.present:
+        return JammerHypotheses([estimate], np.ones(1))
     members = estimate.members
     hypotheses = []
     for index, member in enumerate(members):

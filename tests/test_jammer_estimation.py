@@ -551,3 +551,11 @@ def test_an_estimate_of_several_jammers_survives_its_record():
     assert JammerEstimate.of_record(first.record()) == first
     assert both.members == (first, second) and first.members == (first,)
     assert JammerEstimate(False, None, None, None, None, None, None, None, 10, 0.0).members == ()
+
+
+def test_an_estimate_of_no_jammer_is_its_one_hypothesis():
+    """The uploads can say there is no jammer; weighed with its uncertainty that is still
+    no jammer, the one hypothesis, and reports weigh nothing for or against it."""
+    absent = JammerEstimate(False, None, None, None, None, None, None, None, 10, -3.0)
+    hypotheses = posterior_hypotheses(absent)
+    assert hypotheses.estimates == [absent] and hypotheses.weights.tolist() == [1.0]
