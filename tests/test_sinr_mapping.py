@@ -20,7 +20,7 @@ from cloud_service.online_map_sim import Fleet, jammer_params
 from cloud_service.process import estimate_of, map_card
 from cloud_service.simulated_measurements import labelled_batch, simulated_measurements
 from cloud_service.sinr_mapping import TARGET_ACCURACY, OnlineSinrMapper, PublishedWeights
-from cloud_service.sinr_memory import SinrMemory
+from cloud_service.sinr_memory import DbReports, SinrMemory
 from cloud_service.sinr_training import fit_sinr_map, train_sinr_map, warm_up
 from cloud_service.upload_positions import positions_from_features
 from jamnav.cli import main
@@ -208,6 +208,28 @@ def test_memory_keeps_the_reported_sinr_and_reads_an_older_file_as_level_reports
     np.testing.assert_array_equal(everything.sinr_db[20:], with_db.sinr_db)
     np.testing.assert_array_equal(everything.levels, np.concatenate([levels_only.levels,
                                                                      with_db.levels]))
+
+
+def test_memory_reads_its_db_reports_in_chunks_in_arrival_order(tmp_path, scenario):
+    """Only the reports that carry the SINR, those taken before ``before``, ``chunk`` rows a
+    read; and when the newest stored report was taken."""
+    reporting = scenario.changed({"uav.report": "db", "uav.measurement_noise_db": 1.0})
+    with SinrMemory(tmp_path / "m.sqlite", MeasurementSpec.of(scenario)) as memory:
+        assert memory.newest_time() is None and list(memory.db_reports()) == []
+        with_db = [simulated_measurements(reporting, None, 30, np.random.default_rng(seed),
+                                          time=float(seed)) for seed in range(3)]
+        for seed, batch in enumerate(with_db):
+            levels_only = _batch(scenario, 20, 10 + seed, time=seed + 0.5)
+            memory.append(batch)
+            memory.append(levels_only)
+        assert memory.newest_time() == 2.5
+        chunks = list(memory.db_reports(before=2.0, chunk=7))
+        assert [len(chunk.times) for chunk in chunks] == [7] * 8 + [4]
+        read = DbReports(*(np.concatenate(column) for column in zip(*chunks, strict=True)))
+        taken = MeasurementBatch.concatenate(with_db[:2])
+        np.testing.assert_array_equal(read.times, taken.times)
+        np.testing.assert_array_equal(read.features, taken.features)
+        np.testing.assert_array_equal(read.sinr_db, taken.sinr_db)
 
 
 def test_memory_keeps_the_most_recent(tmp_path, scenario):
