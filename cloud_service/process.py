@@ -38,7 +38,7 @@ from cloud_service.rollout import RasterMaps
 from cloud_service.rounds import RoundDesk, delay_rounds
 from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
-from planning.networks import SinrMapNetwork, WeightsError, load_network, sha256
+from planning.networks import SinrMapNetwork, WeightsError, card_path, load_network, sha256
 from shared import access, bus
 from shared.cloud_messages import (
     MapMode,
@@ -112,11 +112,32 @@ def estimate_of(card: dict[str, Any]) -> EstimatedJammer | None:
         return None
 
 
+def _saved_maps(directory: Path) -> list[tuple[int, Path]]:
+    """The SINR maps previous runs of this cloud published, with their versions."""
+    return [(int(m.group(1)), p) for p in directory.glob("sinr_map_v*.safetensors")
+            if (m := _VERSION_FILE.match(p.name))]
+
+
 def latest_saved(directory: Path) -> Path | None:
     """The newest SINR map a previous run of this cloud published (to carry on after it)."""
-    versions = [(int(m.group(1)), p) for p in directory.glob("sinr_map_v*.safetensors")
-                if (m := _VERSION_FILE.match(p.name))]
+    versions = _saved_maps(directory)
     return max(versions)[1] if versions else None
+
+
+def first_change_start(directory: Path) -> float | None:
+    """When the earliest change that a saved corrected map answered began (its card's
+    ``refining_since``); None when no card tells of one. A card that cannot be read tells of
+    none rather than stop the cloud: the reports since its change then enter the rebuilt
+    no-jammer reference."""
+    starts = []
+    for _, path in _saved_maps(directory):
+        try:
+            card = json.loads(card_path(path).read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError):
+            continue
+        if isinstance(start := card.get("refining_since"), int | float):
+            starts.append(float(start))
+    return min(starts, default=None)
 
 
 class CloudService:
@@ -208,7 +229,8 @@ class CloudService:
                                        publish=self._on_retrained, **timing, version=version,
                                        estimate=estimate,
                                        refining_since=refining_since
-                                       if isinstance(refining_since, int | float) else None)
+                                       if isinstance(refining_since, int | float) else None,
+                                       changed_since=first_change_start(self.maps_dir))
         data = path.read_bytes()
         return SinrMap(version=version, mode="online", sha256=sha256(data), data=data,
                        accuracy=float(accuracy))

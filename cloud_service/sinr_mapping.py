@@ -14,6 +14,7 @@ position is explicit (BENCHMARKS.md, "Online SINR mapping", the GBSs the map see
 
 from __future__ import annotations
 
+import math
 import threading
 import time as wall
 from collections import deque
@@ -113,8 +114,11 @@ class OnlineSinrMapper:
     ``estimate``: the jammer estimate behind ``network``, for a cloud that restarts on the map
     it last published (the detector weighs reports by it, see ``report_probability``), and
     ``refining_since`` the start of the change that map was still refining: the refinement
-    goes on from the memory, which the restart kept. ``base_accuracy``: the survey map's, for
-    its publication when an estimate is withdrawn (``accuracy`` without a ``base_network``).
+    goes on from the memory, which the restart kept. ``changed_since``: when the earliest
+    change that a corrected map this cloud published answered began (None: none did); with
+    ``refining_since`` it bounds the stored reports the no-jammer reference is rebuilt from
+    (``_rebuild_reference``). ``base_accuracy``: the survey map's, for its publication when an
+    estimate is withdrawn (``accuracy`` without a ``base_network``).
     """
 
     def __init__(
@@ -134,6 +138,7 @@ class OnlineSinrMapper:
         seed: int = 0,
         estimate: JammerEstimate | None = None,
         refining_since: float | None = None,
+        changed_since: float | None = None,
         base_accuracy: float | None = None,
     ):
         self.scenario = scenario
@@ -162,6 +167,7 @@ class OnlineSinrMapper:
         self.report_models = ReportModels(scenario, self._base, self.reference,
                                           self._prior_positions())
         self._resume(estimate, refining_since)
+        self._rebuild_reference(refining_since, changed_since)
 
     def _resume(self, estimate: JammerEstimate | None, refining_since: float | None) -> None:
         """Take over a map in service corrected with ``estimate`` (None: an uncorrected one)
@@ -184,6 +190,20 @@ class OnlineSinrMapper:
                                          tracker=self._tracker(refining_since))
         # The change whose handling made the correction in service.
         self._correction_change = self._change
+
+    def _rebuild_reference(self, *change_starts: float | None) -> None:
+        """Refill the no-jammer reference from the memory a restart kept, by the rule live
+        reports follow (``SinrReference``): every stored dB report taken before the earliest
+        of ``change_starts`` (all of them if none is known) is offered, and committed as of the
+        newest stored report, so those ``reference_delay_s`` older than it enter now and the
+        others wait, to be dropped if a change is detected before them."""
+        known = [start for start in change_starts if start is not None]
+        for reports in self.memory.db_reports(min(known, default=math.inf)):
+            xy = positions_from_features(self.scenario, reports.features)
+            self.reference.offer(xy, reports.sinr_db, reports.times)
+        newest = self.memory.newest_time()
+        if newest is not None:
+            self.reference.commit(newest)
 
     @property
     def version(self) -> int:

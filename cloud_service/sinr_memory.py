@@ -16,8 +16,9 @@ import math
 import sqlite3
 import threading
 from collections import Counter
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -43,8 +44,20 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 """
 _COLUMNS = "id, source, step, time, level, features, sinr_db"
 _LOOKUP_CHUNK = 900  # ids per query: below the 999 variables of SQLite builds before 3.32
+# Rows per read of ``db_reports``: its reader finds each report's place from its features, whose
+# working arrays over a whole memory outgrow the caches (BENCHMARKS.md, "A restarted cloud's
+# reference").
+_READ_CHUNK = 4096
 
 Uploads = MeasurementBatch | Iterable[Measurement | Mapping]
+
+
+class DbReports(NamedTuple):
+    """Stored reports that carry the SINR: when each was taken, its features, its SINR."""
+
+    times: np.ndarray
+    features: np.ndarray
+    sinr_db: np.ndarray
 
 
 class SinrMemory:
@@ -149,6 +162,32 @@ class SinrMemory:
         """Refused measurements per reason, since the file was created."""
         with self._lock:
             return Counter(dict(self._db.execute("SELECT reason, count FROM rejected")))
+
+    def newest_time(self) -> float | None:
+        """When the newest stored measurement was taken; None when none is stored."""
+        with self._lock:
+            return self._db.execute("SELECT MAX(time) FROM measurements").fetchone()[0]
+
+    def db_reports(self, before: float = math.inf,
+                   chunk: int = _READ_CHUNK) -> Iterator[DbReports]:
+        """The stored reports that carry the SINR, taken before ``before``, in arrival order,
+        ``chunk`` at a time: only the columns a reader of the SINR needs, each chunk read
+        under the lock, so writers wait for one chunk at most."""
+        last_seq = -1
+        while True:
+            with self._lock:
+                rows = self._db.execute(
+                    "SELECT seq, time, features, sinr_db FROM measurements "
+                    "WHERE seq > ? AND sinr_db IS NOT NULL AND time < ? ORDER BY seq LIMIT ?",
+                    (last_seq, before, chunk)).fetchall()
+            if not rows:
+                return
+            seqs, times, blobs, sinr_db = zip(*rows, strict=True)
+            last_seq = seqs[-1]
+            features = np.frombuffer(b"".join(blobs), dtype=np.float32)
+            yield DbReports(np.array(times, dtype=np.float64),
+                            features.reshape(len(rows), self.spec.feature_size),
+                            np.array(sinr_db, dtype=np.float64))
 
     def since(self, time: float) -> MeasurementBatch:
         """Stored measurements taken at or after ``time``, in arrival order."""

@@ -16,6 +16,20 @@ present from the start and never detected is part of the reference, as it is of 
 Against this reference the detector weighs a dB report by a one-sided test of a loss of
 ``online_map.detection_shift_db`` (``shift_evidence``), and the jammer estimate reads each
 report's no-jammer SINR from it where it has one.
+
+A restarted cloud rebuilds the reference from its replay memory by the same ``offer`` and
+``commit`` (``OnlineSinrMapper._rebuild_reference``), with what the restart knows of when a
+jammer was believed: the start of every change that a corrected map it published answered,
+kept on that map's card (``refining_since``; the map resumed may be one). Every stored dB
+report taken before the earliest of those starts is offered, every stored dB report if no card
+tells of one, and committed as of the newest stored report: those ``reference_delay_s`` older
+than it enter at once, the younger wait as live ones would. So on a map corrected for a jammer
+only the reports from before its change enter; on an uncorrected one, those from before any
+change its predecessors answered. What no card keeps, the rebuild cannot leave out: a change
+answered by a provisional map or by the DNN alone, or not answered yet when the cloud stopped,
+leaves no start behind, and the reports taken since it enter. Reports taken after a jammer's
+withdrawal, which entered live, are left out with those taken while it was believed: the rule
+reads no more of the cards than when changes began, and those cells refill as UAVs fly them.
 """
 
 from __future__ import annotations

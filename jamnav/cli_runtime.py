@@ -19,9 +19,15 @@ import sys
 import threading
 from pathlib import Path
 
-from jamnav.arguments import UsageError, check_range, jammer_command, new_recording
+from jamnav.arguments import (
+    UsageError,
+    check_range,
+    jammer_command,
+    new_recording,
+    scenario_argument,
+)
 from shared.process_status import mapper_summary
-from shared.scenario import MAX_JAMMERS, ScenarioError, load_scenario
+from shared.scenario import MAX_JAMMERS, ScenarioError
 from shared.topics import (
     DEFAULT_ENDPOINT,
     ENDPOINT_ENV,
@@ -231,7 +237,7 @@ def cmd_console(args: argparse.Namespace) -> int:
     from jamnav.console.server import serve
     from shared import access
 
-    scenario = load_scenario(args.scenario)
+    scenario = scenario_argument(args)
     topics = Topics(args.prefix)
     endpoint = endpoint_from(args.endpoint)
     login = access.login_for(args.credentials, access.OPERATOR)

@@ -21,7 +21,7 @@ from jamnav.arguments import (
     survey_map_argument,
 )
 from jamnav.cli_runtime import guarded
-from shared.scenario import MAX_UAVS, SEED_MAX, Scenario, load_scenario
+from shared.scenario import MAX_UAVS, SEED_MAX, Scenario
 from shared.shipped import VALUE_NET_HELP, value_net_for, value_net_path
 from shared.topics import (
     DEFAULT_ENDPOINT,
@@ -163,7 +163,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     from jamnav.console import listen
     from jamnav.supervisor import UpConfig, up
 
-    scenario = load_scenario(args.scenario)
+    scenario = scenario_argument(args)
     uavs = scenario.missions.uav_count if args.uavs is None else args.uavs
     swap_to, survey = _check_run_options(args, scenario, uavs)
     run_dir, endpoint, agent_endpoint, link_endpoint = _check_places(args, uavs)

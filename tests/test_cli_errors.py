@@ -40,13 +40,17 @@ def _free_port() -> int:
 # to a file in a directory that does not exist; {header_only}: a training log of no episodes;
 # {bools}: points given as JSON booleans; {extended_run}, {broken_run}, {older_run}:
 # checkpoints train --resume cannot use; {port}: a free loopback port (no router behind it);
-# {other_world}: a scenario in a radio world no shipped survey map was learned in.
+# {other_world}: a scenario in a radio world no shipped survey map was learned in; {broken}: a
+# TOML file that does not parse.
 CASES = [
     # scenario show
     (["scenario", "show", "--scenario", "nope"], 2),
     (["scenario", "show", "--scenario", "{binary}"], 2),
     (["scenario", "show", "--scenario", "{dir}"], 2),
     (["scenario"], 2),
+    # the system's commands, on a scenario that does not parse
+    (["up", "--scenario", "{broken}"], 2),
+    (["console", "--scenario", "{broken}"], 2),
     # sinr
     (["sinr", "--at", "1,1", "--jammer", "1,2"], 2),
     (["sinr", "--at", "1,1", "--jammer", "a,b,c"], 2),
@@ -263,8 +267,10 @@ def places(tmp_path, monkeypatch):
     assert "gbs_sigma_db = 3.0" in shadowed
     (tmp_path / "other_world.toml").write_text(
         shadowed.replace("gbs_sigma_db = 3.0", "gbs_sigma_db = 4.0"), encoding="utf-8")
+    (tmp_path / "broken.toml").write_text('name = "broken"\n[area\n', encoding="utf-8")
     return {
         "other_world": str(tmp_path / "other_world.toml"),
+        "broken": str(tmp_path / "broken.toml"),
         "tmp": str(tmp_path), "file": str(tmp_path / "file"), "dir": str(tmp_path / "dir"),
         "binary": str(tmp_path / "binary"), "bools": str(tmp_path / "bools.json"),
         "dangling": str(tmp_path / "dangling.png"),
@@ -304,7 +310,8 @@ def test_an_environment_endpoint_is_checked_too(capsys, monkeypatch):
     assert err.startswith("jamnav: error: endpoint 'nonsense'") and err.count("\n") == 1
 
 
-def test_a_scenario_that_cannot_be_read_is_one_line(capsys, monkeypatch):
+@pytest.mark.parametrize("command", [["scenario", "show"], ["up"], ["console"]])
+def test_a_scenario_that_cannot_be_read_is_one_line(capsys, places, monkeypatch, command):
     """Permissions cannot be taken away from root, so the read itself is made to fail."""
     import shared.scenario
 
@@ -312,6 +319,6 @@ def test_a_scenario_that_cannot_be_read_is_one_line(capsys, monkeypatch):
         raise PermissionError(13, "Permission denied")
 
     monkeypatch.setattr(shared.scenario.Path, "read_text", unreadable)
-    assert main(["scenario", "show"]) == 2
+    assert main(command) == 2
     err = capsys.readouterr().err
     assert err.startswith("jamnav: error: ") and err.endswith("icc2021.toml: Permission denied\n")

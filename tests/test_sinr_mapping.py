@@ -17,10 +17,10 @@ from cloud_service.estimated_jammer import JammerEstimate as EstimatedJammer
 from cloud_service.estimated_jammer import JammerHypotheses
 from cloud_service.jammer_estimation import JammerFit, jammer_hypotheses
 from cloud_service.online_map_sim import Fleet, jammer_params
-from cloud_service.process import estimate_of, map_card
+from cloud_service.process import estimate_of, first_change_start, map_card
 from cloud_service.simulated_measurements import labelled_batch, simulated_measurements
 from cloud_service.sinr_mapping import TARGET_ACCURACY, OnlineSinrMapper, PublishedWeights
-from cloud_service.sinr_memory import SinrMemory
+from cloud_service.sinr_memory import DbReports, SinrMemory
 from cloud_service.sinr_training import fit_sinr_map, train_sinr_map, warm_up
 from cloud_service.upload_positions import positions_from_features
 from jamnav.cli import main
@@ -210,6 +210,28 @@ def test_memory_keeps_the_reported_sinr_and_reads_an_older_file_as_level_reports
                                                                      with_db.levels]))
 
 
+def test_memory_reads_its_db_reports_in_chunks_in_arrival_order(tmp_path, scenario):
+    """Only the reports that carry the SINR, those taken before ``before``, ``chunk`` rows a
+    read; and when the newest stored report was taken."""
+    reporting = scenario.changed({"uav.report": "db", "uav.measurement_noise_db": 1.0})
+    with SinrMemory(tmp_path / "m.sqlite", MeasurementSpec.of(scenario)) as memory:
+        assert memory.newest_time() is None and list(memory.db_reports()) == []
+        with_db = [simulated_measurements(reporting, None, 30, np.random.default_rng(seed),
+                                          time=float(seed)) for seed in range(3)]
+        for seed, batch in enumerate(with_db):
+            levels_only = _batch(scenario, 20, 10 + seed, time=seed + 0.5)
+            memory.append(batch)
+            memory.append(levels_only)
+        assert memory.newest_time() == 2.5
+        chunks = list(memory.db_reports(before=2.0, chunk=7))
+        assert [len(chunk.times) for chunk in chunks] == [7] * 8 + [4]
+        read = DbReports(*(np.concatenate(column) for column in zip(*chunks, strict=True)))
+        taken = MeasurementBatch.concatenate(with_db[:2])
+        np.testing.assert_array_equal(read.times, taken.times)
+        np.testing.assert_array_equal(read.features, taken.features)
+        np.testing.assert_array_equal(read.sinr_db, taken.sinr_db)
+
+
 def test_memory_keeps_the_most_recent(tmp_path, scenario):
     with SinrMemory(tmp_path / "m.sqlite", MeasurementSpec.of(scenario), capacity=250) as memory:
         batches = [_batch(scenario, 100, seed) for seed in range(4)]
@@ -292,9 +314,11 @@ def _fly(mapper, fleet, scenario, setting, steps, start, now):
     return reports
 
 
-def _online(scenario, network, accuracy, **kwargs):
+def _online(scenario, network, accuracy, memory=":memory:", **kwargs):
+    """A mapper on its simulated clock, over the memory at ``memory`` (a path, or SQLite's
+    ``:memory:``)."""
     now = [0.0]
-    memory = SinrMemory(":memory:", MeasurementSpec.of(scenario))
+    memory = SinrMemory(memory, MeasurementSpec.of(scenario))
     # No wall-clock budget: a busy test machine must not cut a retraining short.
     kwargs.setdefault("retrain", RetrainConfig(max_seconds=None))
     mapper = OnlineSinrMapper(scenario, memory, network, accuracy, clock=lambda: now[0],
@@ -672,6 +696,21 @@ def test_a_published_maps_card_keeps_its_estimate_for_a_restart():
     assert estimate_of({"estimate": {"present": True}}) is None  # unreadable: none, no error
 
 
+def test_the_earliest_change_a_saved_card_tells_of_bounds_a_restarted_reference(tmp_path):
+    """The cards of the maps a cloud saved: the earliest ``refining_since`` among them; a map
+    without an estimate, or a card that cannot be read, tells of none."""
+    estimate = EstimatedJammer(True, 1.5, -2.0, 0.8, 9.0, 2.5, 3.0, 0.7, 1234, 40.0, 0.3)
+    assert first_change_start(tmp_path) is None
+    for version, estimated, since in ((1, None, None), (2, estimate, 40.0), (3, None, None),
+                                      (4, estimate, 75.5)):
+        weights = PublishedWeights(b"", "0" * 64, version, 0.97, estimated, since)
+        (tmp_path / f"sinr_map_v{version}.safetensors").write_bytes(b"")
+        (tmp_path / f"sinr_map_v{version}.json").write_text(json.dumps(map_card(weights, 1.0)))
+    assert first_change_start(tmp_path) == 40.0
+    (tmp_path / "sinr_map_v2.json").write_text("{truncated")
+    assert first_change_start(tmp_path) == 75.5
+
+
 def test_a_restarted_mapper_goes_on_refining_the_change_its_map_answered(mapping_scenario,
                                                                        no_jammer_map):
     """A cloud killed while it refined an estimate comes back refining it, from the memory the
@@ -690,6 +729,153 @@ def test_a_restarted_mapper_goes_on_refining_the_change_its_map_answered(mapping
     assert mapper.version > 1 and located and "change_detected" not in _types(mapper)
     assert math.hypot(located[-1]["x"] - setting.x, located[-1]["y"] - setting.y) <= 3.0
     assert mapper.state()["phase"] == "watching"
+
+
+# -- the no-jammer reference of a restarted cloud ----------------------------------------------
+@pytest.fixture(scope="module")
+def db_reporting(mapping_scenario):
+    """The mapping world with receivers that report the SINR, with 0.3 dB of noise (its
+    survey map and thresholds were set for exact reports: with 0.5 dB, 20 UAVs' level
+    reports raise a change in the first second)."""
+    return mapping_scenario.changed({"uav.report": "db", "uav.measurement_noise_db": 0.3})
+
+
+def _cells(reference, xy):
+    """Each point's reference cell (row, col), for points inside the area."""
+    return np.floor((xy - reference.origin) / reference.cell_m).astype(np.int64)[:, ::-1]
+
+
+def test_a_restarted_mapper_rebuilds_the_reference_the_live_one_built(db_reporting,
+                                                                      no_jammer_map, tmp_path):
+    """20 UAVs fly 60 s with no jammer, their dB reports entering the reference as they go; a
+    mapper restarted over the memory holds the same reference: the same reports in each cell,
+    the same sums (each cell's reports are added in the order taken, live and rebuilt alike),
+    and the same reports still waiting their turn."""
+    network, accuracy = no_jammer_map
+    path = tmp_path / "memory.sqlite"
+    live, now = _online(db_reporting, network, accuracy, memory=path, background=False)
+    _fly(live, Fleet(db_reporting, 20, np.random.default_rng(2)), db_reporting, None, 60, 0,
+         now)
+    assert live.events == [] and live.reference.reports > 1000
+    live.close()
+    restarted, _ = _online(db_reporting, network, accuracy, memory=path, background=False)
+    for reference in (live.reference, restarted.reference):
+        assert reference.reports < restarted.memory.count()  # the last 10 s still wait
+    np.testing.assert_array_equal(restarted.reference.counts, live.reference.counts)
+    np.testing.assert_array_equal(restarted.reference.sums, live.reference.sums)
+    np.testing.assert_array_equal(restarted.reference.squares, live.reference.squares)
+    # By hand: the reports of the three fullest cells, taken 10 s before the newest or earlier.
+    stored = restarted.memory.recent(100_000)
+    xy = positions_from_features(db_reporting, stored.features)
+    due = stored.times <= stored.times.max() - db_reporting.online_map.reference_delay_s
+    cells = _cells(restarted.reference, xy)
+    fullest = np.argsort(restarted.reference.counts, axis=None)[-3:]
+    for row, col in zip(*np.unravel_index(fullest, restarted.reference.shape), strict=True):
+        mine = due & (cells[:, 0] == row) & (cells[:, 1] == col)
+        assert restarted.reference.counts[row, col] == mine.sum() >= 3
+        assert restarted.reference.sums[row, col] == pytest.approx(stored.sinr_db[mine].sum(),
+                                                                   abs=1e-9)
+    for reference in (live.reference, restarted.reference):
+        reference.commit(math.inf)
+    np.testing.assert_array_equal(restarted.reference.counts, live.reference.counts)
+    np.testing.assert_array_equal(restarted.reference.sums, live.reference.sums)
+    restarted.close()
+
+
+def _db_reports(scenario, xy, times, sinr_db, seed, levels=None):
+    """One UAV's dB reports ``sinr_db`` at ``xy``; at the levels of those SINRs unless
+    ``levels`` are given."""
+    if levels is None:
+        levels = RadioModel(scenario).level_of(sinr_db)
+    return labelled_batch(scenario, xy, levels, np.random.default_rng(seed), time=times,
+                          source="uav-0", sinr_db=sinr_db)
+
+
+@pytest.mark.parametrize("resumed", ["corrected", "uncorrected"])
+def test_a_restarted_reference_leaves_out_the_reports_since_a_change_began(
+        db_reporting, no_jammer_map, tmp_path, resumed):
+    """A memory of 60 s of dB reports, a change that began at 30 s: whether the map resumed
+    was corrected for it (its card's ``refining_since``) or an earlier map answered it (an
+    uncorrected map resumed), the rebuilt reference holds the reports taken before 30 s, all
+    of them (the newest was taken 30 s later), and none taken since."""
+    network, accuracy = no_jammer_map
+    path = tmp_path / "memory.sqlite"
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-45.0, 45.0, (600, 2))
+    times = np.linspace(0.0, 60.0, 600)
+    stored = _db_reports(db_reporting, xy, times, np.round(rng.normal(10.0, 4.0, 600) * 2) / 2,
+                         seed=6)
+    with SinrMemory(path, MeasurementSpec.of(db_reporting)) as memory:
+        memory.append(stored)
+    start = {"refining_since": 30.0, "estimate": _believed(TABLE_I_JAMMERS[0])}
+    if resumed == "uncorrected":
+        start = {"changed_since": 30.0}
+    restarted, _ = _online(db_reporting, network, accuracy, memory=path, background=False,
+                           **start)
+    before = times < 30.0
+    assert restarted.reference.reports == before.sum()
+    restarted.reference.commit(math.inf)
+    assert restarted.reference.reports == before.sum()  # none wait either
+    cells = _cells(restarted.reference, positions_from_features(db_reporting, stored.features))
+    expected = np.zeros(restarted.reference.shape)
+    np.add.at(expected, tuple(cells[before].T), stored.sinr_db[before])
+    np.testing.assert_allclose(restarted.reference.sums, expected, rtol=0, atol=1e-9)
+    restarted.close()
+
+
+def test_a_memory_of_level_reports_gives_an_empty_reference(db_reporting, no_jammer_map,
+                                                             tmp_path):
+    network, accuracy = no_jammer_map
+    path = tmp_path / "memory.sqlite"
+    with SinrMemory(path, MeasurementSpec.of(db_reporting)) as memory:
+        memory.append(_batch(db_reporting.changed({"uav.report": "level"}), 500, 3,
+                             time=20.0))
+        memory.append(_batch(db_reporting.changed({"uav.report": "level"}), 500, 4,
+                             time=40.0))
+    restarted, _ = _online(db_reporting, network, accuracy, memory=path, background=False)
+    restarted.reference.commit(math.inf)
+    assert restarted.reference.reports == 0
+    restarted.close()
+
+
+def test_a_restarted_mapper_detects_a_loss_in_db_as_the_unbroken_one_does(
+        db_reporting, no_jammer_map, tmp_path):
+    """One UAV reports along a line, four times over, then, after a minute, 3 dB below what
+    it reported there, at the levels the map expects: only the no-jammer reference shows the
+    loss. The mapper that took the first reports detects it; one restarted over its memory
+    detects it at the same report, from the same start; one that knows none of the first
+    reports (as a restarted cloud did before it rebuilt its reference) sees nothing."""
+    network, accuracy = no_jammer_map
+    radio = RadioModel(db_reporting)
+    rng = np.random.default_rng(7)
+    line = np.stack([np.arange(-30.0, 30.0, 1.0) + 0.5, np.full(60, 10.5)], axis=1)
+    quiet = radio.evaluate(line).sinr_db
+    passes = [_db_reports(db_reporting, line, 6.0 * k + np.arange(60) * 0.1,
+                          radio.measured_reports(quiet, rng).sinr_db, seed=k)
+              for k in range(4)]
+    expected = predict_probabilities(network, scenario_features(db_reporting, line)).argmax(-1)
+    lowered = [_db_reports(db_reporting, line[k:k + 10], 90.0 + k * 0.1 + np.arange(10) * 0.1,
+                           radio.measured_reports(quiet[k:k + 10] - 3.0, rng).sinr_db,
+                           seed=10 + k, levels=expected[k:k + 10])
+               for k in range(0, 60, 10)]
+    unbroken, _ = _online(db_reporting, network, accuracy, memory=tmp_path / "unbroken.sqlite",
+                          background=False)
+    with SinrMemory(tmp_path / "kept.sqlite", MeasurementSpec.of(db_reporting)) as kept:
+        for batch in passes:
+            unbroken.ingest(batch)
+            kept.append(batch)
+    assert unbroken.events == [] and unbroken.reference.reports > 0
+    restarted, _ = _online(db_reporting, network, accuracy, memory=tmp_path / "kept.sqlite",
+                           background=False)
+    fresh, _ = _online(db_reporting, network, accuracy, background=False)
+    detected = {}
+    for name, mapper in (("unbroken", unbroken), ("restarted", restarted), ("fresh", fresh)):
+        checks = [mapper.ingest(batch).check for batch in lowered]
+        fired = [check.t for check in checks if check is not None and check.fired]
+        detected[name] = fired and (fired[0], mapper.events[0]["change_time"])
+        mapper.close()
+    assert detected["unbroken"] and detected["restarted"] == detected["unbroken"]
+    assert not detected["fresh"]
 
 
 @pytest.mark.parametrize("points", [500, 3000])
