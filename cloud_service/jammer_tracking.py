@@ -6,6 +6,7 @@ in, for the online mapper."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -22,6 +23,10 @@ ACCELERATION_SD_MPS2 = 0.2
 # A window's estimate is never trusted to better than this (m): the search's fine grid.
 MIN_POSITION_SD_M = 0.5
 WINDOW_S = 5.0  # the uploads each estimate reads: a jammer at 5 m/s moves 25 m in it
+# Windows far behind the newest upload say where the jammer was, not where it is: the cloud's
+# tracker, fallen behind (restarted, or busy with its estimates and fits), takes up at most
+# this many of the latest and skips the older.
+MOST_WINDOWS_BEHIND = 4
 
 
 class TrackedJammer(NamedTuple):
@@ -129,12 +134,16 @@ class WindowedTracker:
         """Whether uploads up to ``latest`` complete a window not estimated yet."""
         return latest >= self.next_start + self.window_s
 
-    def follow(self, latest: float, estimate_window: Callable[[float, float],
-                                                              JammerEstimate | None]
-               ) -> list[TrackedJammer]:
+    def follow(self, latest: float,
+               estimate_window: Callable[[float, float], JammerEstimate | None],
+               most_behind: int | None = None) -> list[TrackedJammer]:
         """Estimate every window that uploads up to ``latest`` complete
-        (``estimate_window(start, end)``), in order; the track after each that places the
-        jammer."""
+        (``estimate_window(start, end)``), in order, or only the latest ``most_behind`` of
+        them; the track after each that places the jammer."""
+        skipped = math.floor((latest - self.next_start) / self.window_s) - (
+            math.inf if most_behind is None else most_behind)
+        if skipped > 0:
+            self.next_start += skipped * self.window_s
         out = []
         while self.due(latest):
             start, end = self.next_start, self.next_start + self.window_s

@@ -27,7 +27,7 @@ from cloud_service.change_detection import ChangeDetector, DetectorCheck
 from cloud_service.change_handling import HandledChange, RetrainConfig
 from cloud_service.estimated_jammer import JammerEstimate, JammerHypotheses
 from cloud_service.jammer_estimation import estimate_jammer, locate_jammer
-from cloud_service.jammer_tracking import WindowedTracker
+from cloud_service.jammer_tracking import MOST_WINDOWS_BEHIND, WindowedTracker
 from cloud_service.jammer_withdrawal import WithdrawalCheck, WithdrawalTest, withdrawal_evidence
 from cloud_service.map_correction import corrected_levels
 from cloud_service.map_refit import prior_positions, refit_network
@@ -158,7 +158,9 @@ class OnlineSinrMapper:
         self._seed = seed
         self._lock = threading.Lock()
         self._recent = deque(maxlen=RECENT_KEPT)
-        self._latest = -np.inf  # when the newest report stored was taken
+        newest = memory.newest_time()
+        # When the newest report stored was taken (a restarted cloud's memory holds some).
+        self._latest = -np.inf if newest is None else newest
         self._busy = False
         self._worker: threading.Thread | None = None
         # Set by ``close``: work under way stops at its next check and publishes nothing.
@@ -467,7 +469,8 @@ class OnlineSinrMapper:
     def _follow(self, change: HandledChange) -> None:
         """Estimate the windows of uploads the change's tracker has not seen, each alone, and
         log where the track puts the jammer after each that placed it."""
-        tracked = change.tracker.follow(self._latest, self._window_estimate)
+        tracked = change.tracker.follow(self._latest, self._window_estimate,
+                                        MOST_WINDOWS_BEHIND)
         with self._lock:
             self.events.extend({**now._asdict(), "type": "jammer_tracked", "t": self.clock(),
                                 "tracked_at": now.t} for now in tracked)

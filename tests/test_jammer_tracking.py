@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 
 from cloud_service.estimated_jammer import JammerEstimate
-from cloud_service.jammer_tracking import JammerTrack, track_jammer
+from cloud_service.jammer_tracking import (
+    MOST_WINDOWS_BEHIND,
+    JammerTrack,
+    WindowedTracker,
+    track_jammer,
+)
 from shared.radio import JammerParams, RadioModel
 
 
@@ -53,3 +58,19 @@ def test_a_jammer_driving_a_straight_line_is_tracked(scenario):
     last = track[-1]
     assert np.hypot(last.x - (-30.0 + 2.0 * last.t), last.y + 10.0) <= 3.0
     assert np.hypot(last.vx - 2.0, last.vy) <= 0.5
+
+
+def test_a_tracker_that_fell_behind_takes_up_only_the_latest_windows():
+    """Uploads 60 s past the tracker's next window (a restarted cloud, a busy one): the
+    cloud's tracker estimates the last ``MOST_WINDOWS_BEHIND`` complete windows, in order, not
+    all twelve; without the limit (``track_jammer``'s) it takes up all of them."""
+    asked = []
+    tracker = WindowedTracker(0.0, 5.0)
+    tracker.follow(61.0, lambda start, end: asked.append((start, end)), MOST_WINDOWS_BEHIND)
+    assert asked == [(40.0, 45.0), (45.0, 50.0), (50.0, 55.0), (55.0, 60.0)]
+    assert MOST_WINDOWS_BEHIND == len(asked)
+    tracker.follow(64.9, lambda start, end: asked.append((start, end)), MOST_WINDOWS_BEHIND)
+    assert len(asked) == 4 and tracker.due(65.0)  # the next window ends at 65 s
+    every = []
+    WindowedTracker(0.0, 5.0).follow(61.0, lambda start, end: every.append((start, end)))
+    assert len(every) == 12 and every[0] == (0.0, 5.0)
