@@ -16,8 +16,9 @@ import numpy as np
 
 from benchmarks.common import Figure
 from cloud_service.change_handling import RetrainConfig
+from cloud_service.mapper_outputs import PublishedWeights
 from cloud_service.online_map_sim import Fleet
-from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights
+from cloud_service.sinr_mapping import OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
 from planning.networks import load_network
 from shared.measurements import MeasurementSpec

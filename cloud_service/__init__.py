@@ -12,17 +12,18 @@ The online service (``python -m cloud_service.process``, started by ``jamnav up`
   that declares a change; ``change_handling``: when the mapper estimates, refits and settles
   on one (``RetrainConfig``); ``map_refit``: the map network refitted on the uploads plus a
   prior over the area; ``jammer_withdrawal``: whether the jammer behind a corrected map is
-  still there; ``report_models``: how probable the cloud's models make each report.
+  still there; ``report_models``: how probable the cloud's models make each report;
+  ``mapper_outputs``: what the mapper gives out (each map it publishes).
 - ``sinr_reference``: what UAVs measured with no jammer, the reference for dB reports.
-- ``jammer_estimation``: the jammer's position and power from the uploads alone, or a
-  provisional map's hypotheses, built on ``jammer_evidence`` (the uploads' log-likelihood
+- ``jammer_estimation``: the jammers' count, positions and powers from the uploads alone,
+  or a provisional map's hypotheses, built on ``jammer_evidence`` (the uploads' log-likelihood
   ratio for a hypothesis), ``report_likelihood`` (how probable a level or dB report is at a
   believed SINR), ``no_jammer_belief`` (what the cloud believes of the no-jammer SINR at a
   point), ``upload_positions`` (where an upload was taken, from its features) and
   ``estimated_jammer`` (the jammer as the cloud knows it).
-- ``map_correction``: the no-jammer map corrected with an estimated jammer.
+- ``map_correction``: the no-jammer map corrected with the estimated jammers.
 - ``jammer_tracking``: a moving jammer followed through the estimates of successive windows
-  of uploads (a constant-velocity Kalman filter).
+  of uploads (a constant-velocity Kalman filter), offline and by the mapper as uploads come.
 - ``scenario_tables`` (offline): the online, perfect and outdated maps under a scenario's own
   jammers, over seeds (``jamnav jammers-table``).
 - ``sinr_training``: fitting a SINR-mapping network (torch, loaded on first use; ``jamnav

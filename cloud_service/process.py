@@ -34,9 +34,10 @@ import zenoh
 
 from cloud_service.change_handling import RetrainConfig
 from cloud_service.estimated_jammer import JammerEstimate as EstimatedJammer
+from cloud_service.mapper_outputs import PublishedWeights
 from cloud_service.rollout import RasterMaps
 from cloud_service.rounds import RoundDesk, delay_rounds
-from cloud_service.sinr_mapping import OnlineSinrMapper, PublishedWeights
+from cloud_service.sinr_mapping import OnlineSinrMapper
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
 from planning.networks import SinrMapNetwork, WeightsError, card_path, load_network, sha256
 from shared import access, bus

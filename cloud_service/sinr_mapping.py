@@ -31,6 +31,7 @@ from cloud_service.jammer_tracking import MOST_WINDOWS_BEHIND, WindowedTracker
 from cloud_service.jammer_withdrawal import WithdrawalCheck, WithdrawalTest, withdrawal_evidence
 from cloud_service.map_correction import corrected_levels
 from cloud_service.map_refit import prior_positions, refit_network
+from cloud_service.mapper_outputs import IngestReport, PublishedWeights
 from cloud_service.report_likelihood import REPORT_SIGMA_DB
 from cloud_service.report_models import ReportModels
 from cloud_service.sinr_memory import SinrMemory, Uploads
@@ -47,25 +48,6 @@ if TYPE_CHECKING:
 TARGET_ACCURACY = 0.97  # the accuracy bar the online map is held to on fresh measurements
 RECENT_KEPT = 500  # uploads over which the map in service is scored for status
 CLOSE_WAIT_S = 5.0  # how long a closing mapper waits for the work under way
-
-
-class PublishedWeights(NamedTuple):
-    data: bytes  # safetensors
-    sha256: str
-    version: int
-    accuracy: float  # held-out accuracy on what it was trained on
-    estimate: JammerEstimate | None  # the jammer estimate the map was corrected with
-    # When the change it answers began, while the estimate is still being refined (None once
-    # a map settles it): a restarted cloud goes on refining from there.
-    refining_since: float | None = None
-    # Corrected by the jammer's hypotheses while no estimate converges (see OnlineSinrMapper).
-    provisional: bool = False
-
-
-class IngestReport(NamedTuple):
-    accepted: int
-    duplicates: int
-    check: DetectorCheck | None
 
 
 class _RefitPrior(NamedTuple):

@@ -16,10 +16,11 @@ from cloud_service.change_handling import HandledChange, RetrainConfig
 from cloud_service.estimated_jammer import JammerEstimate as EstimatedJammer
 from cloud_service.estimated_jammer import JammerHypotheses
 from cloud_service.jammer_estimation import JammerFit, jammer_hypotheses
+from cloud_service.mapper_outputs import PublishedWeights
 from cloud_service.online_map_sim import Fleet, jammer_params
 from cloud_service.process import estimate_of, first_change_start, map_card
 from cloud_service.simulated_measurements import labelled_batch, simulated_measurements
-from cloud_service.sinr_mapping import TARGET_ACCURACY, OnlineSinrMapper, PublishedWeights
+from cloud_service.sinr_mapping import TARGET_ACCURACY, OnlineSinrMapper
 from cloud_service.sinr_memory import DbReports, SinrMemory
 from cloud_service.sinr_training import fit_sinr_map, train_sinr_map, warm_up
 from cloud_service.upload_positions import positions_from_features
