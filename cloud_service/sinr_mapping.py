@@ -444,24 +444,6 @@ class OnlineSinrMapper:
             "no_jammer_db": self.reference.at(xy),
             "report_sigma_db": REPORT_SIGMA_DB if spread_db is None else spread_db}
 
-    # -- following ---------------------------------------------------------------------------
-    def _tracker(self, start: float) -> WindowedTracker:
-        return WindowedTracker(start, self.scenario.online_map.tracking_window_s)
-
-    def _follow(self, change: HandledChange) -> None:
-        """Estimate the windows of uploads the change's tracker has not seen, each alone, and
-        log where the track puts the jammer after each that placed it."""
-        tracked = change.tracker.follow(self._latest, self._window_estimate,
-                                        MOST_WINDOWS_BEHIND)
-        with self._lock:
-            self.events.extend({**now._asdict(), "type": "jammer_tracked", "t": self.clock(),
-                                "tracked_at": now.t} for now in tracked)
-
-    def _window_estimate(self, start: float, end: float) -> JammerEstimate | None:
-        data = self.memory.since(start)
-        xy, levels, inputs = self._estimate_inputs(data.take(np.flatnonzero(data.times < end)))
-        return estimate_jammer(self.scenario, xy, levels, **inputs)
-
     def _fit(self, change: HandledChange, data: MeasurementBatch,
              jammer: JammerEstimate | JammerHypotheses | None) -> None:
         """Fit the DNN to the post-change uploads, plus the prior of the no-jammer map
@@ -580,6 +562,24 @@ class OnlineSinrMapper:
     def _prior_positions(self) -> np.ndarray:
         """Where the refit's prior labels the area (a fresh draw for each map version)."""
         return prior_positions(self.scenario, self._seed + self._version)
+
+    # -- following ---------------------------------------------------------------------------
+    def _tracker(self, start: float) -> WindowedTracker:
+        return WindowedTracker(start, self.scenario.online_map.tracking_window_s)
+
+    def _follow(self, change: HandledChange) -> None:
+        """Estimate the windows of uploads the change's tracker has not seen, each alone, and
+        log where the track puts the jammer after each that placed it."""
+        tracked = change.tracker.follow(self._latest, self._window_estimate,
+                                        MOST_WINDOWS_BEHIND)
+        with self._lock:
+            self.events.extend({**now._asdict(), "type": "jammer_tracked", "t": self.clock(),
+                                "tracked_at": now.t} for now in tracked)
+
+    def _window_estimate(self, start: float, end: float) -> JammerEstimate | None:
+        data = self.memory.since(start)
+        xy, levels, inputs = self._estimate_inputs(data.take(np.flatnonzero(data.times < end)))
+        return estimate_jammer(self.scenario, xy, levels, **inputs)
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait for running work; True when none is running any more."""
