@@ -581,6 +581,7 @@ class OnlineSinrMapper:
         xy, levels, inputs = self._estimate_inputs(data.take(np.flatnonzero(data.times < end)))
         return estimate_jammer(self.scenario, xy, levels, **inputs)
 
+    # -- stopping ----------------------------------------------------------------------------
     def wait(self, timeout: float | None = None) -> bool:
         """Wait for running work; True when none is running any more."""
         worker = self._worker
