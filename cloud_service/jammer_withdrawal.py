@@ -1,7 +1,8 @@
 """Whether the jammer behind a corrected map is still there: the test that withdraws a map
 corrected for a jammer the reports show gone or moved (``WithdrawalTest``), the confirmation a
-change's first corrected map waits for (``WithdrawalTest.confirms``), and what each report
-weighs for both (``withdrawal_evidence``)."""
+change's first corrected map waits for (``WithdrawalTest.confirms``), what each report
+weighs for both (``withdrawal_evidence``), and the test of each jammer of a set
+(``MemberWithdrawals``)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from cloud_service.estimated_jammer import (
     NO_JAMMER,
     JammerEstimate,
     JammerHypotheses,
+    estimated_set,
     posterior_hypotheses,
 )
 from cloud_service.map_correction import sinr_report_probabilities
@@ -107,20 +109,22 @@ class WithdrawalEvidence(NamedTuple):
 
 
 def withdrawal_evidence(models: ReportModels, data: MeasurementBatch, xy: np.ndarray,
-                        jammer: JammerEstimate | JammerHypotheses,
-                        shadowing_sigma_db: float) -> WithdrawalEvidence:
+                        jammer: JammerEstimate | JammerHypotheses, shadowing_sigma_db: float,
+                        rest: JammerEstimate = NO_JAMMER) -> WithdrawalEvidence:
     """The reports of ``data``, taken at ``xy``, placed inside the area (beyond its edge the
-    map is no evidence), weighed by ``models`` with ``jammer`` and without. An estimate is
-    weighed with its uncertainty (``posterior_hypotheses``): taken as exact, a still jammer's
-    rough first estimate was withdrawn by one UAV's run along the zone edge it misplaced
+    map is no evidence), weighed by ``models`` with ``jammer`` and with ``rest`` only (by
+    default no jammer; a set's others, to weigh one of its jammers). An estimate is weighed
+    with its uncertainty (``posterior_hypotheses``): taken as exact, a still jammer's rough
+    first estimate was withdrawn by one UAV's run along the zone edge it misplaced
     (BENCHMARKS.md, "A jammer that comes and goes")."""
     scenario = models.scenario
     kept = np.flatnonzero(np.isfinite(xy).all(axis=1) & ~scenario.area.outside(xy))
     levels, xy, reported_db = data.levels[kept], xy[kept], data.sinr_db[kept]
     if isinstance(jammer, JammerEstimate):
         jammer = posterior_hypotheses(jammer)
+    rest = posterior_hypotheses(rest) if rest.present else rest
     with_jammer = models.model_probability(levels, xy, jammer, shadowing_sigma_db)
-    without = models.model_probability(levels, xy, None, shadowing_sigma_db)
+    without = models.model_probability(levels, xy, rest, shadowing_sigma_db)
     floors = np.full(len(kept), scenario.online_map.probability_floor)
     reported = np.isfinite(reported_db)
     if reported.any():  # a dB report weighs by its SINR
@@ -130,6 +134,72 @@ def withdrawal_evidence(models: ReportModels, data: MeasurementBatch, xy: np.nda
                               models.reference.at(here))
         with_jammer[reported], without[reported] = (
             sinr_report_probabilities(scenario, here, reported_db[reported], model, belief)
-            for model in (jammer, NO_JAMMER))
+            for model in (jammer, rest))
         floors[reported] = 0.0
     return WithdrawalEvidence(with_jammer, without, data.times[kept], floors)
+
+
+class JammerGone(NamedTuple):
+    """One jammer of a set the reports show gone (``MemberWithdrawals``)."""
+
+    jammer: JammerEstimate
+    rest: JammerEstimate  # the set without it
+    check: WithdrawalCheck
+
+
+class MemberWithdrawals:
+    """Whether each jammer of an estimated set is still there: one ``WithdrawalTest`` a
+    jammer, weighing the set against the set without it, so that one jammer switched off is
+    withdrawn alone while the others' reports keep the set's test (against no jammer) down.
+    None for one jammer, hypotheses or no correction: the set's own test is theirs."""
+
+    def __init__(self, scenario: Scenario,
+                 correction: JammerEstimate | JammerHypotheses | None = None):
+        self.members = (correction.members if isinstance(correction, JammerEstimate)
+                        else ())
+        self.set = correction
+        self.tests = ([WithdrawalTest.of(scenario) for _ in self.members]
+                      if len(self.members) > 1 else [])
+
+    def update(self, models: ReportModels, data: MeasurementBatch, xy: np.ndarray,
+               shadowing_sigma_db: float) -> JammerGone | None:
+        """Feed new reports to each jammer's test; the first jammer they show gone."""
+        for index, test in enumerate(self.tests):
+            rest = estimated_set([*self.members[:index], *self.members[index + 1:]])
+            check = test.update(*withdrawal_evidence(models, data, xy, self.set,
+                                                     shadowing_sigma_db, rest))
+            if check is not None and check.fired:
+                return JammerGone(self.members[index], rest, check)
+        return None
+
+
+@dataclass
+class CorrectionWatch:
+    """The jammer the map in service was corrected for (a converged estimate, a set of them,
+    or a provisional map's hypotheses; None: an uncorrected map), the shadowing fitted beside
+    it, and the tests that watch whether it is still there: the whole against no jammer, and
+    each jammer of a set against the others (``MemberWithdrawals``)."""
+
+    jammer: JammerEstimate | JammerHypotheses | None
+    sigma_db: float
+    whole: WithdrawalTest
+    members: MemberWithdrawals
+
+    @classmethod
+    def of(cls, scenario: Scenario, jammer: JammerEstimate | JammerHypotheses | None = None,
+           sigma_db: float = 0.0, whole: WithdrawalTest | None = None) -> CorrectionWatch:
+        """Watch ``jammer`` afresh, or go on with the ``whole`` test a fit already fed."""
+        return cls(jammer, sigma_db, whole or WithdrawalTest.of(scenario),
+                   MemberWithdrawals(scenario, jammer))
+
+    def weigh(self, models: ReportModels, data: MeasurementBatch, xy: np.ndarray,
+              members_may_go: bool) -> JammerGone | WithdrawalCheck | None:
+        """Feed new reports to the tests: the first jammer of a set they show gone, while
+        ``members_may_go``; else the check that withdraws the whole, once it fired; else
+        None."""
+        gone = self.members.update(models, data, xy, self.sigma_db)
+        if gone is not None and members_may_go:
+            return gone
+        check = self.whole.update(*withdrawal_evidence(models, data, xy, self.jammer,
+                                                       self.sigma_db))
+        return check if check is not None and check.fired else None

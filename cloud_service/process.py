@@ -379,6 +379,11 @@ class CloudService:
                 self.log.info("jammer estimate withdrawn: %.1f nats against it from the reports "
                               "since t=%.1f; the survey map is in service as v%d",
                               event["evidence_nats"], event["evidence_since"], event["version"])
+            elif event["type"] == "jammer_withdrawn":
+                self.log.info("jammer at (%.1f, %.1f) m withdrawn alone: %.1f nats against it "
+                              "since t=%.1f; %d left", event["x"], event["y"],
+                              event["evidence_nats"], event["evidence_since"],
+                              event["jammers_left"])
             elif event["type"] == "jammer_tracked":
                 self.log.info("jammer tracked at (%.1f, %.1f) m, moving (%.1f, %.1f) +- "
                               "(%.1f, %.1f) m/s", event["x"], event["y"], event["vx"],

@@ -25,14 +25,20 @@ import numpy as np
 
 from cloud_service.change_detection import ChangeDetector, DetectorCheck
 from cloud_service.change_handling import HandledChange, RetrainConfig
+from cloud_service.estimate_inputs import EstimateInputs
 from cloud_service.estimated_jammer import JammerEstimate, JammerHypotheses
-from cloud_service.jammer_estimation import estimate_jammer, locate_jammer
+from cloud_service.jammer_estimation import locate_jammer
 from cloud_service.jammer_tracking import MOST_WINDOWS_BEHIND, WindowedTracker
-from cloud_service.jammer_withdrawal import WithdrawalCheck, WithdrawalTest, withdrawal_evidence
+from cloud_service.jammer_withdrawal import (
+    CorrectionWatch,
+    JammerGone,
+    WithdrawalCheck,
+    WithdrawalTest,
+    withdrawal_evidence,
+)
 from cloud_service.map_correction import corrected_levels
 from cloud_service.map_refit import prior_positions, refit_network
 from cloud_service.mapper_outputs import IngestReport, PublishedWeights
-from cloud_service.report_likelihood import REPORT_SIGMA_DB
 from cloud_service.report_models import ReportModels
 from cloud_service.sinr_memory import SinrMemory, Uploads
 from cloud_service.sinr_reference import SinrReference
@@ -150,6 +156,7 @@ class OnlineSinrMapper:
         self.reference = SinrReference(scenario)
         self.report_models = ReportModels(scenario, self._base, self.reference,
                                           self._prior_positions())
+        self._inputs = EstimateInputs(self.report_models, self.reference, memory)
         self._resume(estimate, refining_since)
         self._rebuild_reference(refining_since, changed_since)
 
@@ -158,14 +165,9 @@ class OnlineSinrMapper:
         and, if it was still being refined, the handling of the change that began at
         ``refining_since``, as if that map had just been fitted."""
         self.estimate = estimate
-        # The jammer the map in service was corrected for: a converged estimate, or the
-        # hypotheses of a provisional map; None on an uncorrected map.
-        self._correction: JammerEstimate | JammerHypotheses | None = (
-            estimate if estimate is not None and estimate.present else None)
-        # The shadowing fitted beside ``_correction``.
-        self._estimate_sigma_db = (0.0 if estimate is None
-                                   else self.report_models.survey_sigma_db)
-        self._withdrawal = WithdrawalTest.of(self.scenario)
+        self._watch = CorrectionWatch.of(
+            self.scenario, estimate if estimate is not None and estimate.present else None,
+            0.0 if estimate is None else self.report_models.survey_sigma_db)
         self._change: HandledChange | None = None  # set while a change is being handled
         if estimate is not None and refining_since is not None:
             done = len(self.memory.since(refining_since))
@@ -220,8 +222,8 @@ class OnlineSinrMapper:
                     "since_change": None if change is None else change.measurements,
                     "provisional": self._provisional, "estimate": self.estimate,
                     # Nats the reports hold against the jammer the map was corrected for.
-                    "withdrawal_evidence": None if self._correction is None
-                    else self._withdrawal.statistic}
+                    "withdrawal_evidence": None if self._watch.jammer is None
+                    else self._watch.whole.statistic}
 
     @property
     def model_spread_db(self) -> float | None:
@@ -235,7 +237,7 @@ class OnlineSinrMapper:
         service or by the models, with the estimate behind that map
         (``ReportModels.report_probability``)."""
         return self.report_models.report_probability(stored, probabilities, xy, self.estimate,
-                                                      self._estimate_sigma_db)
+                                                      self._watch.sigma_db)
 
     # -- watching ---------------------------------------------------------------------------
     def ingest(self, uploads: Uploads) -> IngestReport:
@@ -265,7 +267,7 @@ class OnlineSinrMapper:
         self._latest = max(self._latest, float(stored.times.max()))
         xy = positions_from_features(self.scenario, stored.features)
         check = withdrawn = None
-        if self._correction is not None:
+        if self._watch.jammer is not None:
             withdrawn = self._weigh_correction(stored, xy)
         # The reports that withdrew a map are not weighed again against the survey map.
         if withdrawn is None and self._change is None:
@@ -295,14 +297,14 @@ class OnlineSinrMapper:
     def _remember(self, stored: MeasurementBatch, xy: np.ndarray) -> None:
         """Reports taken while no change is handled enter the no-jammer reference in turn,
         if no jammer is believed either."""
-        if self._correction is None:
+        if self._watch.jammer is None:
             self.reference.remember(xy, stored.sinr_db, stored.times)
 
     def _shift_evidence(self, stored: MeasurementBatch, xy: np.ndarray) -> np.ndarray:
         """What each dB report weighs for a jammer against the no-jammer reference
         (``SinrReference.shift_evidence_at``), while no jammer is believed; NaN elsewhere,
         and for level reports."""
-        if self._correction is not None or not np.isfinite(stored.sinr_db).any():
+        if self._watch.jammer is not None or not np.isfinite(stored.sinr_db).any():
             return np.full(len(stored), np.nan)
         return self.reference.shift_evidence_at(xy, stored.sinr_db)
 
@@ -319,12 +321,28 @@ class OnlineSinrMapper:
     def _weigh_correction(self, stored: MeasurementBatch,
                           xy: np.ndarray) -> PublishedWeights | None:
         """New reports weighed against the jammer the map in service was corrected for;
-        the survey map to publish when they withdraw it."""
-        check = self._withdrawal.update(*withdrawal_evidence(
-            self.report_models, stored, xy, self._correction, self._estimate_sigma_db))
-        if check is None or not check.fired:
-            return None
-        return self._withdraw_locked(self._correction, check)
+        the survey map to publish when they withdraw it. One jammer of several goes alone,
+        the rest staying, unless a change is in hand."""
+        fired = self._watch.weigh(self.report_models, stored, xy, self._change is None)
+        if isinstance(fired, JammerGone):
+            return self._withdraw_member_locked(fired)
+        return None if fired is None else self._withdraw_locked(self._watch.jammer, fired)
+
+    def _withdraw_member_locked(self, gone: JammerGone) -> None:
+        """The reports say one jammer of the set behind the map is gone: the rest of the set
+        is what the cloud believes and weighs reports against from now, and a change is
+        handled from when that evidence began, so the next map is corrected for the rest (or
+        for what the reports since then show instead)."""
+        start = gone.check.since
+        self.estimate = gone.rest
+        self._watch = CorrectionWatch.of(self.scenario, gone.rest, self._watch.sigma_db)
+        self._change = HandledChange(start, self.clock(), len(self.memory.since(start)),
+                                     gone.rest, confirmed=True, tracker=self._tracker(start))
+        self.events.append({
+            "type": "jammer_withdrawn", "t": self.clock(), "version": self._version,
+            **{key: getattr(gone.jammer, key) for key in ("x", "y", "power_w")},
+            "jammers_left": len(gone.rest.members), "evidence_nats": gone.check.statistic,
+            "evidence_since": start, "reports": gone.check.reports})
 
     def _withdraw_locked(self, jammer: JammerEstimate | JammerHypotheses,
                          check: WithdrawalCheck) -> PublishedWeights | None:
@@ -339,7 +357,8 @@ class OnlineSinrMapper:
         if self._network is not self._base:
             published = self._serve_locked(self._base, to_bytes(self._base),
                                            self._base_accuracy, None, None, False)
-        self.estimate, self._correction, self._provisional = None, None, False
+        self.estimate, self._provisional = None, False
+        self._watch = CorrectionWatch.of(self.scenario)
         estimate = jammer if isinstance(jammer, JammerEstimate) else None
         self.events.append({
             "type": "estimate_withdrawn", "t": self.clock(), "version": self._version,
@@ -408,10 +427,7 @@ class OnlineSinrMapper:
                 self._busy = False
 
     def _try_estimate(self, change: HandledChange, data: MeasurementBatch) -> None:
-        # The survey map carries the world's shadowing, which the ideal model lacks: without
-        # it a jammer cannot be told from a shadow; its probabilities, not only its levels,
-        # say how near a level's edge each report lies (see jammer_estimation).
-        xy, levels, inputs = self._estimate_inputs(data)
+        xy, levels, inputs = self._inputs.of(data)
         located = locate_jammer(self.scenario, xy, levels, **inputs)
         if self._closing.is_set():
             return
@@ -432,17 +448,6 @@ class OnlineSinrMapper:
         # place it may be in proportion to its probability, until an estimate converges.
         if located.hypotheses is not None:
             self._fit(change, data, located.hypotheses)
-
-    def _estimate_inputs(self, data: MeasurementBatch) -> tuple[np.ndarray, np.ndarray, dict]:
-        """Where the reports of ``data`` were taken, their levels, and what else an estimate
-        reads of them: their SINRs and the cloud's no-jammer beliefs there."""
-        xy = positions_from_features(self.scenario, data.features)
-        spread_db = self.report_models.model_spread_db
-        return xy, data.levels, {
-            "reported_db": data.sinr_db,
-            "no_jammer_levels": self.report_models.no_jammer_probabilities(xy),
-            "no_jammer_db": self.reference.at(xy),
-            "report_sigma_db": REPORT_SIGMA_DB if spread_db is None else spread_db}
 
     def _fit(self, change: HandledChange, data: MeasurementBatch,
              jammer: JammerEstimate | JammerHypotheses | None) -> None:
@@ -524,8 +529,9 @@ class OnlineSinrMapper:
             published = self._serve_locked(result.network, weights, result.accuracy, estimate,
                                            None if estimate is None else change.start,
                                            provisional)
-            self.estimate, self._estimate_sigma_db = estimate, prior.shadowing_sigma_db
-            self._correction, self._withdrawal = jammer, prior.withdrawal
+            self.estimate = estimate
+            self._watch = CorrectionWatch.of(self.scenario, jammer, prior.shadowing_sigma_db,
+                                             prior.withdrawal)
             self._correction_change = change
             if estimate is not None:
                 self.events.append({"type": "jammer_estimated", "t": self.clock(),
@@ -570,16 +576,11 @@ class OnlineSinrMapper:
     def _follow(self, change: HandledChange) -> None:
         """Estimate the windows of uploads the change's tracker has not seen, each alone, and
         log where the track puts the jammer after each that placed it."""
-        tracked = change.tracker.follow(self._latest, self._window_estimate,
+        tracked = change.tracker.follow(self._latest, self._inputs.window_estimate,
                                         MOST_WINDOWS_BEHIND)
         with self._lock:
             self.events.extend({**now._asdict(), "type": "jammer_tracked", "t": self.clock(),
                                 "tracked_at": now.t} for now in tracked)
-
-    def _window_estimate(self, start: float, end: float) -> JammerEstimate | None:
-        data = self.memory.since(start)
-        xy, levels, inputs = self._estimate_inputs(data.take(np.flatnonzero(data.times < end)))
-        return estimate_jammer(self.scenario, xy, levels, **inputs)
 
     # -- stopping ----------------------------------------------------------------------------
     def wait(self, timeout: float | None = None) -> bool:

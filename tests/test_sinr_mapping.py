@@ -1066,3 +1066,31 @@ def test_the_cloud_follows_a_driving_jammer_and_publishes_its_velocity(mapping_s
     published = [e for e in mapper.events
                  if e["type"] == "jammer_estimated" and e["vx_mps"] is not None]
     assert published and math.hypot(published[0]["vx_mps"] - 3.0, published[0]["vy_mps"]) <= 1.5
+
+
+def test_one_jammer_of_two_switched_off_is_withdrawn_alone(mapping_scenario, no_jammer_map):
+    """Twenty UAVs, Table I's (25, -10) and (-30, 10) jammers, 1 W each, on from 5 s: the
+    cloud counts and maps both. The second goes off at 45 s: its withdrawal comes alone,
+    the map is corrected for the first within a second, and the survey map never goes back
+    in service."""
+    network, accuracy = no_jammer_map
+    mapper, now = _online(mapping_scenario, network, accuracy, background=False, seed=3)
+    fleet = Fleet(mapping_scenario, 20, np.random.default_rng(5))
+    height = mapping_scenario.jammer.height_m
+    both = [JammerParams(25.0, -10.0, 1.0, height), JammerParams(-30.0, 10.0, 1.0, height)]
+    for step in range(60):
+        now[0] = float(step)
+        fleet.fly()
+        mapper.ingest(fleet.uploads([] if step < 5 else both if step < 45 else both[:1],
+                                    now[0], step))
+    life = _life(mapper)
+    estimated = [e for e in life if e["type"] == "jammer_estimated"]
+    assert any(len(e["others"]) == 1 and e["t"] < 45.0 for e in estimated)
+    withdrawn = [e for e in life if e["type"] == "jammer_withdrawn"]
+    assert len(withdrawn) == 1 and withdrawn[0]["jammers_left"] == 1
+    assert math.hypot(withdrawn[0]["x"] + 30.0, withdrawn[0]["y"] - 10.0) <= 3.0
+    after = [e for e in estimated if e["t"] >= withdrawn[0]["t"]]
+    assert after and after[0]["t"] - withdrawn[0]["t"] <= 1.0
+    assert all(not e["others"] and math.hypot(e["x"] - 25.0, e["y"] + 10.0) <= 3.0
+               for e in after)
+    assert "estimate_withdrawn" not in _types(mapper)
