@@ -1,5 +1,5 @@
 """How well the cloud can follow the convoy's jammer (3 m/s across the area) from windows of
-uploads, as the online mapper does (``jammer_tracking.WindowedTracker``): UAVs on random legs
+uploads, as the online mapper does (``jammer_tracking.track_jammer``): UAVs on random legs
 (``online_map_sim.Fleet``) for the 33 s of the crossing, each window of
 ``online_map.tracking_window_s`` estimated alone with the shipped survey map, the estimates
 that place the jammer joined by the constant-velocity filter. Four UAVs (the scenario's) and
@@ -8,11 +8,12 @@ the jammer is at the end of each of those windows."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from benchmarks.common import Figure
-from cloud_service.jammer_estimation import estimate_jammer
-from cloud_service.jammer_tracking import WindowedTracker
+from cloud_service.jammer_tracking import track_jammer
 from cloud_service.online_map_sim import Fleet
 from cloud_service.upload_positions import positions_from_features
 from planning.networks import load_network, predict_probabilities
@@ -37,35 +38,26 @@ def fleet_figures(scenario: Scenario, uavs: int) -> list[Figure]:
     survey, _ = load_network(sinr_map_for(scenario), {"kind": "sinr_map"})
     jammer = scenario.flown_jammers[0]
     window_s = scenario.online_map.tracking_window_s
-    windows, placed, track_errors = 0, 0, []
+    windows = SEEDS * math.floor(CROSSING_S / window_s)
+    track_errors = []
     for seed in range(SEEDS):
         fleet, batches = Fleet(scenario, uavs, np.random.default_rng([seed, 7])), []
-        tracker = WindowedTracker(0.0, window_s)
         for step in range(CROSSING_S):
             fleet.fly()
             x, y = position_at(jammer, float(step))
             batches.append(fleet.uploads(JammerParams(x, y, jammer.power_w, jammer.height_m),
                                          float(step), step))
-            if not tracker.due(step + 1.0):
-                continue
-            data = MeasurementBatch.concatenate(batches)
-            windows += 1
-
-            def estimate_window(start: float, end: float, data=data):
-                rows = np.flatnonzero((data.times >= start) & (data.times < end))
-                window = data.take(rows)
-                return estimate_jammer(
-                    scenario, positions_from_features(scenario, window.features), window.levels,
-                    reported_db=window.sinr_db,
-                    no_jammer_levels=predict_probabilities(survey, window.features))
-
-            if tracker.follow(step + 1.0, estimate_window):
-                placed += 1
-                track_errors.append(np.hypot(*(np.array(tracker.track.at(step + 1.0))
-                                               - position_at(jammer, step + 1.0))))
+        data = MeasurementBatch.concatenate(batches)
+        for now in track_jammer(scenario, positions_from_features(scenario, data.features),
+                                data.levels, data.times,
+                                predict_probabilities(survey, data.features),
+                                window_s=window_s, reported_db=data.sinr_db):
+            end = now.t + window_s / 2.0  # each update sits at its window's middle
+            ahead = np.array([now.x + now.vx * window_s / 2.0, now.y + now.vy * window_s / 2.0])
+            track_errors.append(float(np.hypot(*(ahead - position_at(jammer, end)))))
     name = f"convoy, {uavs} UAVs, {window_s:g} s windows over the 3 m/s crossing"
     return [Figure(f"{name}: windows that place the jammer, of {windows}",
-                   100.0 * placed / max(windows, 1), "%"),
+                   100.0 * len(track_errors) / windows, "%"),
             Figure(f"{name}: track's position error at each window's end, median",
                    float(np.median(track_errors)) if track_errors else float("nan"), "m",
                    TRACK_TARGET_M, lower_is_better=True)]

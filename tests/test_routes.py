@@ -115,6 +115,7 @@ def test_nodes_walled_off_by_blocked_cells_are_unreachable(builder):
     cost[:, 2] = np.inf  # a wall of blocked cells down the middle column
     field = built(EdgeWeights.of(cost, 2.0), [0, 2], np.inf, builder)
     assert np.isfinite(field[0, :, :2]).all() and np.isinf(field[0, :, 2:]).all()
+    # Three float64 edge weights of ~2-3 summed: a few ulps (~1e-15) off at most.
     assert field[0, 3, 1] == pytest.approx(2.0 * (2 + math.sqrt(2)), abs=1e-12)
     assert field[1, 0, 2] == 0.0 and np.isinf(np.delete(field[1].ravel(), 2)).all()
 
