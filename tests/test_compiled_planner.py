@@ -16,16 +16,12 @@ import numpy as np
 import pytest
 import torch
 
-from cloud_service.rollout import LookaheadController, perfect_maps
+from cloud_service.rollout import perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
 from planning import PLANNER_VARIABLE, PlannerError
 from planning.chosen import lookahead_policy
 from planning.features import (
-    ABSENT_DISTANCE,
     EXTENDED_METHOD,
-    OTHER_FEATURES,
-    OWN_FEATURES,
-    MethodOptions,
     joint_state_size,
 )
 from planning.lookahead import CompiledLookahead
@@ -35,133 +31,34 @@ from planning.reference import LookaheadPolicy
 from shared.observation import Observation
 from shared.paper import TABLE_I_JAMMERS, jammer_params
 from shared.shipped import EXTENDED_CROWD_VALUE_NET, EXTENDED_VALUE_NET, VALUE_NET
-from tests import float32_bounds as bounds
+from tests.planner_agreement import Agreement, agreement, flown_states, table_one_jammers
 from tests.test_policy import untrained
-from world_sim.core import VectorWorld, episode_seed, fleet_observation
 
 ROOT = Path(__file__).resolve().parent.parent
 
-# Either planner's value of a state against exact arithmetic on the reference's float32 state
-# (tests/float32_bounds.py: the standardization, the dense layers in any order of summation,
-# tanh and the scale), with the planners' own features off by one float32 rounding (u |x|,
-# u = 2^-24) of float64 values computed in up to 16 operations on quantities below 2^11 m,
-# each off by half an ulp of 2^11 at most (FEATURE_SLACK); the features both copy (a UAV's
-# radius, top speed, level, steps below T_s, the constant zeros, an absent other's block) are
-# the same exactly. A score R + gamma V differs by gamma (or, searched deeper, gamma^2 <=
-# gamma) times the two planners' value errors, plus the float64 rounding of the rewards:
-# REWARD_SLACK.
-FEATURE_SLACK = 16 * 2.0**-42
-REWARD_SLACK = 1e-12
-
-
-def value_error_bound(network: ValueNetwork, states: np.ndarray) -> np.ndarray:
-    """The most either planner's value of each of ``states`` (K, F) can differ from exact
-    (K,), the reference's float32 states standing in for the exact features."""
-    rounded = np.where(computed_features(network, states),
-                       bounds.UNIT_ROUNDOFF * np.abs(states.astype(np.float64))
-                       + FEATURE_SLACK, 0.0)
-    return bounds.values(network, states, rounded).bound
-
-
-def computed_features(network: ValueNetwork, states: np.ndarray) -> np.ndarray:
-    """Which features (K, F) the planners compute, rather than copy (see above)."""
-    own, width = len(OWN_FEATURES), len(OTHER_FEATURES)
-    others = (states.shape[1] - own - 1 - sum(
-        MethodOptions.from_dict(network.method)[:2])) // width
-    computed = np.ones(states.shape, dtype=bool)
-    computed[:, [OWN_FEATURES.index(name) for name in
-                 ("dest_y", "dest_azimuth", "radius", "max_speed")]] = False
-    computed[:, own + width * others:] = False  # level, steps below, and the route distance:
-    computed[:, -1] |= MethodOptions.from_dict(network.method).route_distance  # computed
-    for k in range(others):
-        block = states[:, own + k * width : own + (k + 1) * width]
-        absent = (block[:, 0] == -ABSENT_DISTANCE) & (block[:, 1:4] == 0).all(axis=1)
-        computed[absent, own + k * width : own + (k + 1) * width] = False
-    return computed
-
-
-def score_bound(scenario, network: ValueNetwork, asked: list[np.ndarray],
-                searched: np.ndarray) -> np.ndarray:
-    """How far the two planners' scores of each row may differ (N,): the reference asks for
-    the one-step states of every row first (N x actions), then for the leaves of the deeper
-    search, whose bound the rows ``searched`` deeper (N,) share."""
-    one_step = value_error_bound(network, asked[0]).reshape(len(searched), -1).max(axis=1)
-    deeper = max((value_error_bound(network, leaves).max() for leaves in asked[1:]),
-                 default=0.0)
-    values = np.where(searched, np.maximum(one_step, deeper), one_step)
-    return scenario.policy.gamma * 2 * values + REWARD_SLACK
-
-
-class Recording(ValueNetwork):
-    """A network's own values, keeping every state the planner asks about."""
-
-    def __init__(self, network: ValueNetwork):
-        super().__init__(network.architecture(), network.tensors)
-        self.network = network
-        self.states: list[np.ndarray] = []
-
-    def __call__(self, states):
-        self.states.append(states.reshape(-1, states.shape[-1]))
-        return self.network(states)
-
 
 def compare(scenario, network: ValueNetwork, observation: Observation, radio_map: RasterMap,
-            **options) -> dict[str, int]:
-    """Both planners on the same rows: every score within the bound (and the same moves
-    ruled out), so the same action wherever the reference's two best scores are further
-    apart than twice the bound (the tie margin), and the chosen values within the bound.
-    Counts of the rows, of those within the tie margin, and of different actions."""
-    recording = Recording(network)
-    reference = LookaheadPolicy(scenario, recording, **options)
-    _, want, _ = reference.scored(observation, radio_map)
-    got = CompiledLookahead(scenario, network, **options).decide_scored(observation, radio_map)
-    searched = (~np.isfinite(want) & got.allowed).any(axis=1)
-    bound = score_bound(scenario, network, recording.states, searched)
-    finite = np.isfinite(want)
-    np.testing.assert_array_equal(np.isfinite(got.score), finite)
-    row_bound = np.broadcast_to(bound[:, None], want.shape)
-    assert np.all(np.abs(got.score[finite] - want[finite]) <= row_bound[finite])
-    top_two = -np.sort(-want, axis=1)[:, :2]
-    tied = top_two[:, 0] - top_two[:, 1] <= 2 * bound
-    chosen = want.argmax(axis=1)
-    assert np.array_equal(got.decision.action[~tied], chosen[~tied])
-    rows = np.arange(len(observation))
-    assert np.all(np.abs(got.decision.value - want[rows, got.decision.action]) <= bound)
-    return {"rows": len(observation), "tied": int(tied.sum()),
-            "different": int((got.decision.action != chosen).sum()),
-            "searched deeper": int(searched.sum()), "bound": float(bound.max())}
-
-
-def flown_states(scenario, network_path: Path, envs: int, steps: int, seed: int):
-    """Every step's observations of a fleet flown by the reference planner with the shipped
-    network at ``network_path`` on Table I's jammers, and its maps."""
-    network, _ = load_network(network_path)
-    controller = LookaheadController(LookaheadPolicy(scenario, network), perfect_maps(scenario))
-    world = VectorWorld(scenario, envs, 4)
-    world.reset(np.arange(envs), [episode_seed(seed, k) for k in range(envs)])
-    for env in range(envs):
-        world.set_jammer([env], jammer_params(scenario, TABLE_I_JAMMERS[env % 4]))
-    for _ in range(steps):
-        rows = np.flatnonzero(world.active.ravel())
-        if rows.size == 0:
-            return
-        yield network, fleet_observation(world).select(rows), controller.map_for(world, rows)
-        world.step(*controller.act(world))
+            **options) -> Agreement:
+    """Both planners on the same rows, none breaking the agreement rule."""
+    counts = agreement(scenario, network, observation, radio_map, **options)
+    assert not any(counts.broken().values()), counts
+    return counts
 
 
 @pytest.mark.parametrize("network_path", [EXTENDED_VALUE_NET, EXTENDED_CROWD_VALUE_NET,
                                           VALUE_NET])
 def test_recorded_flights_are_decided_alike(scenario, network_path):
-    counts = {"rows": 0, "tied": 0, "different": 0, "searched deeper": 0, "bound": 0.0}
-    for network, observation, radio_map in flown_states(scenario, network_path, 32, 30, 7):
-        for key, value in compare(scenario, network, observation, radio_map).items():
-            counts[key] = max(counts[key], value) if key == "bound" else counts[key] + value
-    assert counts["rows"] > 1500
+    network, _ = load_network(network_path)
+    counts = Agreement()
+    for observation, radio_map in flown_states(scenario, network, perfect_maps(scenario), 32,
+                                               30, 7, table_one_jammers):
+        counts += compare(scenario, network, observation, radio_map)
+    assert counts.rows > 1500
     # The bound is a worst case, met only where every rounding errs one way: the scores of
     # the two planners lie far closer, and ties within it rarely change an action.
-    assert counts["different"] * 1000 <= counts["rows"]
+    assert counts.different * 1000 <= counts.rows
     if network_path != VALUE_NET:  # the paper's method searches one step only
-        assert counts["searched deeper"] > 0
+        assert counts.searched_deeper > 0
 
 
 def random_fleet(scenario, rng: np.random.Generator, n: int, others: int) -> Observation:
@@ -203,9 +100,9 @@ def test_random_states_are_decided_alike(scenario, options):
     n = 150 if options["lookahead_depth"] == 3 else 600
     counts = compare(scenario, network, random_fleet(scenario, rng, n, 6),
                      jammed_map(scenario, rng, n), **options)
-    assert counts["different"] * 1000 <= n
+    assert counts.different * 1000 <= n
     if options["lookahead_depth"] > 1:
-        assert counts["searched deeper"] > n // 20
+        assert counts.searched_deeper > n // 20
 
 
 def test_a_batch_is_decided_as_its_rows_one_by_one(scenario):
