@@ -20,7 +20,7 @@ import numpy as np
 
 from benchmarks.common import Figure
 from cloud_service.rollout import MapFor, outdated_maps, perfect_maps
-from cloud_service.training_flight import training_jammer
+from cloud_service.training_flight import training_jammers
 from planning.networks import ValueNetwork, load_network
 from planning.reference import PUBLISHED_LOOKAHEAD
 from shared.scenario import Scenario, load_scenario
@@ -82,7 +82,7 @@ def sources() -> list[Source]:
     icc = load_scenario()
     extended = load_network(EXTENDED_VALUE_NET)[0]
     paper = load_network(VALUE_NET)[0]
-    training = {"epsilon": TRAINING_EPSILON, "jam": training_jammers(icc),
+    training = {"epsilon": TRAINING_EPSILON, "jam": jammed_as_in_training(icc),
                 "options": {**PUBLISHED_LOOKAHEAD, "shield": False}}
     return [
         Source("evaluation, extended, perfect maps", icc, extended, perfect_maps(icc), 20_000,
@@ -104,10 +104,10 @@ def sources() -> list[Source]:
     ]
 
 
-def training_jammers(scenario: Scenario) -> Callable[[VectorWorld, int], None]:
+def jammed_as_in_training(scenario: Scenario) -> Callable[[VectorWorld, int], None]:
     """Each environment under one of training's random jammers (or none)."""
     def jam(world: VectorWorld, env: int) -> None:
-        world.set_jammer([env], training_jammer(scenario, 0, env))
+        world.set_jammers([env], training_jammers(scenario, 0, env))
     return jam
 
 

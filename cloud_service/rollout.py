@@ -35,11 +35,15 @@ class RasterMaps:
     20,000-episode run's memory by gigabytes. No more than one setting per environment is in
     flight at once, so keeping twice the environments flown never samples a raster twice."""
 
-    def __init__(self, scenario: Scenario, jam: bool = True, kept: int = 128):
+    def __init__(self, scenario: Scenario, jam: bool = True, kept: int = 128,
+                 moving_every_steps: int = 1):
+        """``moving_every_steps``: a moving jammer is shown where it was at the last multiple
+        of this many steps into the episode (1: where it is)."""
         self.scenario = scenario
         self.radio = RadioModel(scenario)
         self.jam = jam
         self.kept = kept
+        self.moving_every_steps = moving_every_steps
         self.cache: OrderedDict[tuple[float, ...], LevelRaster] = OrderedDict()
 
     def raster(self, jammers: Jammers) -> LevelRaster:
@@ -61,7 +65,8 @@ class RasterMaps:
             return RasterMap(self.scenario, [self.raster(None)], np.zeros(rows.size, np.int64))
         self.kept = max(self.kept, 2 * world.num_envs)  # never evict a setting in flight
         env = rows // world.num_uavs
-        jammers = [world.jammers_now(e) for e in range(world.num_envs)]
+        jammers = [world.jammers_as_of(e, self.moving_every_steps)
+                   for e in range(world.num_envs)]
         keys = sorted(set(jammers[e] for e in np.unique(env)))
         position = {key: index for index, key in enumerate(keys)}
         rasters = [self.raster([JammerParams(*jammer) for jammer in key]) for key in keys]

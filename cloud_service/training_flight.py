@@ -12,26 +12,47 @@ import numpy as np
 from cloud_service.rollout import EpisodeHooks, RasterMaps
 from planning.features import MethodOptions, joint_state_size, observation_state
 from shared.outcomes import Outcome
-from shared.radio import JammerParams
-from shared.scenario import Scenario
+from shared.scenario import Jammer, JammerPath, Scenario
 from world_sim.core import StepResult, VectorWorld, episode_seed, fleet_observation
 
 TRAINING_JAMMER_STREAM = 7  # separates the jammer schedule's random stream from missions'
 
 
-def training_jammer(scenario: Scenario, seed: int, period: int) -> JammerParams | None:
-    """The jammer of training period ``period``: random position and power, or absent."""
+def training_jammers(scenario: Scenario, seed: int, period: int) -> tuple[Jammer, ...]:
+    """The jammers of training period ``period`` (``scenario.training``): none, or 1 to
+    ``jammer_count_max`` at random places and powers, a share of them driving. A scenario
+    with one still jammer at most draws as the shipped networks' training did."""
     rng = np.random.default_rng([seed, TRAINING_JAMMER_STREAM, period])
-    spec = scenario.training
+    spec, area = scenario.training, scenario.area
     if rng.random() < spec.jammer_absent_probability:
-        return None
-    area = scenario.area
-    return JammerParams(
-        float(rng.uniform(area.x_min, area.x_max)),
-        float(rng.uniform(area.y_min, area.y_max)),
-        float(rng.uniform(*spec.jammer_power_range_w)),
-        scenario.jammer.height_m,
-    )
+        return ()
+
+    def anywhere() -> tuple[float, float]:
+        return float(rng.uniform(area.x_min, area.x_max)), float(rng.uniform(area.y_min,
+                                                                             area.y_max))
+
+    def drawn() -> tuple[float, float, float]:
+        return *anywhere(), float(rng.uniform(*spec.jammer_power_range_w))
+
+    places = [drawn()]
+    if spec.jammer_count_max > 1:
+        places += [drawn() for _ in range(int(rng.integers(1, spec.jammer_count_max + 1)) - 1)]
+    jammers = []
+    for x, y, power_w in places:
+        path = None
+        if spec.moving_jammer_share > 0 and rng.random() < spec.moving_jammer_share:
+            path = JammerPath(waypoints=[anywhere()], loop=True,
+                              speed_mps=float(rng.uniform(*spec.moving_jammer_speed_range_mps)))
+        jammers.append(Jammer(x=x, y=y, power_w=power_w, height_m=scenario.jammer.height_m,
+                              efficiency_db=scenario.jammer.efficiency_db, path=path))
+    return tuple(jammers)
+
+
+def training_maps(scenario: Scenario) -> RasterMaps:
+    """The true map of each environment's training jammers, a moving one shown where it was
+    at the last multiple of ``training.moving_map_every_s`` into the episode."""
+    every_s, step_s = scenario.training.moving_map_every_s, scenario.timing.step_s
+    return RasterMaps(scenario, moving_every_steps=max(1, round(every_s / step_s)))
 
 
 class TrajectoryRecorder:
@@ -102,7 +123,7 @@ class TrainingFlight(EpisodeHooks):
         scenario = self.world.scenario
         period = episode // scenario.training.jammer_change_every_episodes
         self.next_episode = episode + 1
-        self.world.set_jammer([env], training_jammer(scenario, self.seed, period))
+        self.world.set_jammers([env], training_jammers(scenario, self.seed, period))
         self.world.reset([env], [episode_seed(self.seed, episode)])
         self.returns[env] = 0.0
 

@@ -52,7 +52,7 @@ from cloud_service.training_checkpoint import (
     run_settings,
 )
 from cloud_service.training_config import TrainConfig
-from cloud_service.training_flight import EpisodeStats, TrainingFlight
+from cloud_service.training_flight import EpisodeStats, TrainingFlight, training_maps
 from cloud_service.value_learner import Learner, discounted_returns
 from planning.chosen import lookahead_policy
 from planning.features import METHODS, MethodOptions
@@ -88,7 +88,7 @@ def train(
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)  # before the networks are made: it draws their weights
     learner = Learner.fresh(scenario, config)
-    maps = perfect_maps(scenario)
+    maps = training_maps(scenario)
     checkpoint = Checkpoint(out)
     log_path = out / LOG_FILE
     if resume:

@@ -273,6 +273,24 @@ class Training(_Strict):
     jammer_change_every_episodes: int = Field(ge=1)
     jammer_power_range_w: tuple[NonNegative, NonNegative]
     jammer_absent_probability: Annotated[float, Field(ge=0, le=1)]
+    # A period with jammers has from 1 to this many, each anywhere at a power in the range.
+    jammer_count_max: int = Field(default=1, ge=1, le=MAX_JAMMERS)
+    # The share of training's jammers on a vehicle: each drives to a random point of the area
+    # and back, over and over, at a speed uniform over the range.
+    moving_jammer_share: Annotated[float, Field(ge=0, le=1)] = 0.0
+    moving_jammer_speed_range_mps: tuple[Positive, Positive] = (1.0, 5.0)
+    # The map training's lookahead reads shows a moving jammer where it was at the last
+    # multiple of this many seconds into the episode: each new place costs a raster and the
+    # UAVs' route fields on it, where every step's place would multiply training's time.
+    moving_map_every_s: Positive = 5.0
+
+    @model_validator(mode="after")
+    def _ranges_ordered(self) -> Training:
+        for name in ("jammer_power_range_w", "moving_jammer_speed_range_mps"):
+            low, high = getattr(self, name)
+            if low > high:
+                raise ValueError(f"training.{name}: {low} > {high}")
+        return self
 
 
 class OnlineMap(_Strict):

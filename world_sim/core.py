@@ -266,6 +266,18 @@ class VectorWorld:
                                   self.jammer_height[env_ids, slot, None])
                      for slot in range(self.jammer_x.shape[1]))
 
+    def jammers_as_of(self, env: int, every_steps: int) -> tuple[tuple[float, ...], ...]:
+        """As ``jammers_now``, each moving jammer where it was at the last multiple of
+        ``every_steps`` steps into the episode (whether it transmits: as now)."""
+        jammers = self._driven.get(env)
+        if jammers is None or every_steps == 1:
+            return self.jammers_now(env)
+        t = float(self.steps[env] - self.steps[env] % every_steps) * self.dt
+        return tuple((*position_at(jammer, t), float(power), float(height))
+                     for jammer, power, height in zip(jammers, self.jammer_power[env],
+                                                      self.jammer_height[env], strict=False)
+                     if power > 0)
+
     def jammers_now(self, env: int) -> tuple[tuple[float, float, float, float], ...]:
         """(x, y, power, height) of each jammer transmitting in environment ``env`` now."""
         return tuple((float(x), float(y), float(power), float(height)) for x, y, power, height
