@@ -21,8 +21,9 @@ $(BIN)/python:
 
 # The planner's compiled core is built by the editable install, again whenever its source
 # changes (planning refuses a core older than its source).
-$(STAMP): pyproject.toml setup.py planning/_lookahead.pyx planning/_routes.pyx planning/_dense.h \
-		planning/_vector_math.h | $(BIN)/python
+$(STAMP): pyproject.toml setup.py planning/_lookahead.pyx planning/_routes.pyx \
+		planning/_regression.pyx planning/_dense.h planning/_vector_math.h planning/_regression.h \
+		| $(BIN)/python
 	$(PIP) install $(TORCH)
 	$(PIP) install -e '.[dev]'
 	@touch $(STAMP)

@@ -13,6 +13,7 @@ import torch
 
 from cloud_service.torch_networks import TorchValueNetwork
 from cloud_service.training_config import TrainConfig
+from cloud_service.value_regression import regression
 from planning.features import METHODS, joint_state_size
 from shared.scenario import Scenario
 
@@ -103,14 +104,11 @@ class Learner:
 
     def learn(self, rng: np.random.Generator, config: TrainConfig) -> None:
         """The mini-batch steps after an episode, once D holds a batch."""
-        device = torch.device(config.device)
-        steps = config.updates_per_episode if self.memory.size >= config.batch_size else 0
-        self.net.train()
-        for _ in range(steps):
-            states, values = self.memory.sample(rng, config.batch_size)
-            regression_step(self.net, self.optimizer, torch.from_numpy(states).to(device),
-                            torch.from_numpy(values).to(device))
-        self.net.eval()
+        if self.memory.size < config.batch_size:
+            return
+        step = regression(self.net, self.optimizer)
+        for _ in range(config.updates_per_episode):
+            step(*self.memory.sample(rng, config.batch_size))
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.net.state_dict())
@@ -128,27 +126,15 @@ def fit_value_net(
     rng: np.random.Generator,
 ) -> float:
     """Line 1 of Algorithm 1: regress the network on state-value pairs; returns the last MSE."""
-    device = torch.device(config.device)
-    net.standardize.fit(torch.from_numpy(states).to(device))
-    optimizer = adam(net, config)
-    x_all, y_all = torch.from_numpy(states).to(device), torch.from_numpy(values).to(device)
+    net.standardize.fit(torch.from_numpy(states).to(torch.device(config.device)))
+    step = regression(net, adam(net, config))
     loss_value = math.nan
     for _ in range(epochs):
-        order = torch.from_numpy(rng.permutation(len(values))).to(device)
+        order = rng.permutation(len(values))
         for start in range(0, len(values), config.batch_size):
             batch = order[start : start + config.batch_size]
-            loss_value = float(regression_step(net, optimizer, x_all[batch], y_all[batch]))
+            loss_value = step(states[batch], values[batch])
     return loss_value
-
-
-def regression_step(net: TorchValueNetwork, optimizer: torch.optim.Optimizer,
-                    states: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-    """One Adam step on the mean squared error of ``net`` against ``values``; the loss."""
-    loss = torch.nn.functional.mse_loss(net(states), values)
-    optimizer.zero_grad()
-    loss.backward()
-    optimizer.step()
-    return loss.detach()
 
 
 def td_targets(

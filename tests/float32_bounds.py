@@ -44,10 +44,11 @@ class Bounded:
     bound: np.ndarray
 
 
-def last_layer(network: Network, inputs: np.ndarray,
-               input_error: np.ndarray | float = 0.0) -> Bounded:
-    """The last linear layer's outputs (..., units) for float32 inputs (..., input_size), each
-    input read off by up to ``input_error`` (a forward that computed its inputs itself)."""
+def layers(network: Network, inputs: np.ndarray,
+           input_error: np.ndarray | float = 0.0) -> list[Bounded]:
+    """Each linear layer's outputs before its ReLU (..., units) for float32 inputs
+    (..., input_size), each input read off by up to ``input_error`` (a forward that computed
+    its inputs itself); the standardized inputs first."""
     tensors = {name: t.astype(np.float64) for name, t in network.tensors.items()}
     widths = layer_widths(network.architecture())
     standardized = (inputs.astype(np.float64) - tensors["standardize.mean"]) \
@@ -55,6 +56,7 @@ def last_layer(network: Network, inputs: np.ndarray,
     off = input_error / tensors["standardize.std"]
     # The inputs' error passes the standardization scaled; its subtract and divide round.
     activation, error = standardized, off + gamma(2) * (np.abs(standardized) + off)
+    found = [Bounded(standardized, error)]
     for layer, fan_in in enumerate(widths[:-1]):
         weight = tensors[f"body.{2 * layer}.weight"].T
         bias = tensors[f"body.{2 * layer}.bias"]
@@ -64,8 +66,15 @@ def last_layer(network: Network, inputs: np.ndarray,
         error = (error @ np.abs(weight) + gamma(fan_in + 1) * (read @ np.abs(weight)
                  + np.abs(bias)) + FLOAT32_TINY * read.sum(-1, keepdims=True))
         outputs = activation @ weight + bias
+        found.append(Bounded(outputs, error))
         activation = np.maximum(outputs, 0.0)  # ReLU moves no output further from the exact
-    return Bounded(outputs, error)
+    return found
+
+
+def last_layer(network: Network, inputs: np.ndarray,
+               input_error: np.ndarray | float = 0.0) -> Bounded:
+    """The last linear layer's outputs (..., units), as ``layers`` bounds them."""
+    return layers(network, inputs, input_error)[-1]
 
 
 def values(network: ValueNetwork, states: np.ndarray,

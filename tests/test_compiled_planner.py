@@ -189,6 +189,12 @@ try:
     if asked == "planner":
         from planning.chosen import require_planner
         require_planner()
+    elif asked == "regression":
+        import torch
+        from cloud_service.torch_networks import TorchValueNetwork
+        from cloud_service.value_regression import regression
+        net = TorchValueNetwork(4, 2.0)
+        regression(net, torch.optim.Adam(net.parameters()))
     else:
         from planning.routes import RouteGrid
         RouteGrid(np.ones((3, 3), dtype=bool), 0.0, 0.0, 1.0, 4.0)
@@ -200,10 +206,12 @@ except Exception as exc:
 @pytest.mark.parametrize(("fault", "module", "asked"), [
     ("missing", "_lookahead", "planner"), ("missing", "_routes", "planner"),
     ("missing", "_routes", "routes"), ("stale", "_lookahead", "planner"),
-    ("stale", "_routes", "routes")])
+    ("stale", "_routes", "routes"), ("missing", "_regression", "regression"),
+    ("stale", "_regression", "regression")])
 def test_a_missing_or_stale_core_is_an_error_naming_the_fix(fault, module, asked):
     """A process that asks for the compiled planner is stopped as it starts, whichever module
-    of its core is at fault, and a route grid is never built by the reference instead."""
+    of its core is at fault, and neither a route grid nor a training step is made by the
+    reference instead."""
     done = subprocess.run([sys.executable, "-c", BROKEN_CORE, fault, module, asked], cwd=ROOT,
                           capture_output=True, text=True, timeout=60,
                           env={k: v for k, v in os.environ.items() if k != PLANNER_VARIABLE})

@@ -27,7 +27,9 @@ PROBE = """
 import json, sys
 import cloud_service.process, jamnav.cli, planning.lookahead, uav_agent.process, world_sim.process
 from planning.chosen import require_planner
+from planning.compiled import compiled_module
 require_planner()
+compiled_module("_regression")
 from shared.scenario import SCENARIO_DIR, ScenarioError, resolve_scenario_path
 from shared.shipped import MODELS_DIR
 try:
@@ -60,7 +62,7 @@ def copy_sources(dest: Path) -> Path:
     for top in {mapped.get(p, p.replace(".", "/")).split("/")[0] for p in setuptools["packages"]}:
         shutil.copytree(ROOT / top, dest / top,
                         ignore=shutil.ignore_patterns("__pycache__", "*.so", "_lookahead.c",
-                                                      "_routes.c"))
+                                                      "_routes.c", "_regression.c"))
     for name in ("pyproject.toml", "setup.py", config["project"]["readme"]):
         shutil.copy(ROOT / name, dest / name)
     return dest
@@ -92,6 +94,7 @@ def test_the_installed_copy_runs_on_its_own_files(installed):
     # The wheel carries the planner's compiled core, built from the copied sources.
     assert Path(probe["modules"]["planning._lookahead"]).suffix == ".so"
     assert Path(probe["modules"]["planning._routes"]).suffix == ".so"
+    assert Path(probe["modules"]["planning._regression"]).suffix == ".so"
     shipped_scenarios = sorted(p.name for p in (ROOT / "scenarios").glob("*.toml"))
     assert probe["scenarios"] == shipped_scenarios
     assert probe["models"] == sorted(

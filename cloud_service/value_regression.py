@@ -1,0 +1,90 @@
+"""The value network's mini-batch step: one Adam step on the mean squared error of the network
+against target values. Two implementations of the one step: torch's (autograd and its fused
+Adam), the reference and the only one off the CPU, and the compiled core's
+(``planning/_regression.pyx``), which spares torch's fixed cost per operation, most of a step on
+a network this small. Both read and write the same tensors and the same Adam moments, so a
+checkpoint is one and the same whichever made it, and ``JAMNAV_PLANNER=reference`` trains with
+torch's as it flies the numpy planner."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from cloud_service.torch_networks import TorchValueNetwork
+from planning.compiled import chosen_planner, compiled_module
+
+# (states, target values) -> the batch's mean squared error before the step
+RegressionStep = Callable[[np.ndarray, np.ndarray], float]
+
+
+def regression(net: TorchValueNetwork, optimizer: torch.optim.Adam) -> RegressionStep:
+    """Steps of ``optimizer`` (torch's Adam over ``net``'s parameters) on ``net``: compiled
+    where the network is on the CPU and the planner chosen is the compiled one."""
+    group = optimizer.param_groups[0]
+    on_cpu = all(p.device.type == "cpu" for p in net.parameters())
+    plain_adam = not (group["amsgrad"] or group["maximize"]) and len(optimizer.param_groups) == 1
+    if on_cpu and plain_adam and chosen_planner() == "compiled":
+        return CompiledRegression(net, optimizer)
+    return torch_regression(net, optimizer)
+
+
+def torch_regression(net: TorchValueNetwork, optimizer: torch.optim.Adam) -> RegressionStep:
+    device = next(net.parameters()).device
+
+    def step(states: np.ndarray, values: np.ndarray) -> float:
+        loss = torch.nn.functional.mse_loss(net(torch.from_numpy(states).to(device)),
+                                            torch.from_numpy(values).to(device))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        return float(loss.detach())
+
+    return step
+
+
+class CompiledRegression:
+    """The compiled step over ``net``'s tensors and ``optimizer``'s moments, in place. Adam's
+    state starts as torch starts it (zero moments, step 0, float32 as its fused form keeps it)
+    and its step count follows every step, so torch's own steps may go on from here."""
+
+    def __init__(self, net: TorchValueNetwork, optimizer: torch.optim.Adam):
+        self.optimizer = optimizer
+        group = optimizer.param_groups[0]
+        self.settings = (float(group["lr"]), *map(float, group["betas"]), float(group["eps"]),
+                         float(group["weight_decay"]))
+        linears = [layer for layer in net.body if isinstance(layer, torch.nn.Linear)]
+        self.counters = []
+        layers = []
+        for linear in linears:
+            arrays = []
+            for parameter in (linear.weight, linear.bias):
+                state = self._adam_state(parameter)
+                self.counters.append(state["step"].numpy())
+                arrays.append((parameter.detach().numpy(), state["exp_avg"].numpy(),
+                               state["exp_avg_sq"].numpy()))
+            (weight, weight_mean, weight_square), (bias, bias_mean, bias_square) = arrays
+            layers.append((weight, bias, weight_mean, weight_square, bias_mean, bias_square))
+        self.core = compiled_module("_regression").ValueRegression(
+            layers, net.standardize.mean.numpy(), net.standardize.std.numpy(),
+            float(net.value_scale))
+
+    def _adam_state(self, parameter: torch.nn.Parameter) -> dict:
+        state = self.optimizer.state[parameter]
+        if not state:
+            state["step"] = torch.zeros((), dtype=torch.float32)
+            state["exp_avg"] = torch.zeros_like(parameter, memory_format=torch.preserve_format)
+            state["exp_avg_sq"] = torch.zeros_like(parameter,
+                                                   memory_format=torch.preserve_format)
+        return state
+
+    def __call__(self, states: np.ndarray, values: np.ndarray) -> float:
+        step = int(self.counters[0]) + 1
+        loss = self.core.step(np.ascontiguousarray(states, dtype=np.float32),
+                              np.ascontiguousarray(values, dtype=np.float32), step,
+                              *self.settings)
+        for counter in self.counters:
+            counter += 1
+        return float(loss)

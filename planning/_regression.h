@@ -1,0 +1,184 @@
+/* One Adam step of the value network on the mean squared error of a batch: the forward with its
+ * activations kept, the backward, and torch's Adam (L2 weight decay added to the gradient)
+ * applied to each layer as soon as its gradient is whole. torch's own step is the reference
+ * (cloud_service.value_learner); this one spares its fixed cost per operation, which is most of
+ * a step on a network this small.
+ *
+ * Activations are held feature-major over the batch padded to whole blocks (value i of state s
+ * at act[i * padded + s]), so every product runs one state per vector lane as in _dense.h. The
+ * padding states carry a zero output gradient: they add nothing to any gradient. */
+#ifndef PLANNING_REGRESSION_H
+#define PLANNING_REGRESSION_H
+
+#include <math.h>
+#include <string.h>
+
+#include "_dense.h"
+
+#define REGRESSION_MAX_LAYERS 8
+
+/* A lane mask: a comparison of two blocks gives all ones where it holds, zeros elsewhere. */
+typedef int regression_mask __attribute__((vector_size(DENSE_BLOCK * sizeof(int)), aligned(4)));
+
+/* ``value`` where ``gate`` is positive, zero elsewhere. */
+static inline dense_lanes regression_where_positive(dense_lanes gate, dense_lanes value)
+{
+    const dense_lanes zero = {0};
+    return (dense_lanes)((regression_mask)value & (gate > zero));
+}
+
+typedef struct {
+    int inputs, outputs;
+    float *weight; /* outputs x inputs, torch's layout */
+    float *bias;
+    float *weight_mean, *weight_square, *bias_mean, *bias_square; /* Adam's moments */
+} regression_layer;
+
+typedef struct {
+    double learning_rate, beta1, beta2, eps, weight_decay;
+    long step; /* this step's number, from 1 */
+} adam_settings;
+
+/* torch's Adam on n parameters with their gradients. The bias corrections and the step size
+ * are computed in double; the moments, the parameters and the constants the loop multiplies by
+ * (1 - beta1, beta2, 1 - beta2, the decay, eps) in float32. */
+DENSE_CLONES
+static void regression_adam(float *restrict param, const float *restrict grad,
+                            float *restrict mean, float *restrict square, long n,
+                            const adam_settings *adam)
+{
+    const double correction1 = 1.0 - pow(adam->beta1, (double)adam->step);
+    const double correction2 = 1.0 - pow(adam->beta2, (double)adam->step);
+    const float step_size = (float)(adam->learning_rate / correction1);
+    const float correction2_sqrt = (float)sqrt(correction2);
+    const float keep1 = (float)(1.0 - adam->beta1), beta2 = (float)adam->beta2,
+                keep2 = (float)(1.0 - adam->beta2), decay = (float)adam->weight_decay,
+                eps = (float)adam->eps;
+    for (long k = 0; k < n; k++) {
+        const float g = grad[k] + decay * param[k];
+        mean[k] += (g - mean[k]) * keep1;
+        square[k] = beta2 * square[k] + keep2 * g * g;
+        param[k] -= step_size * mean[k] / (sqrtf(square[k]) / correction2_sqrt + eps);
+    }
+}
+
+/* Sum over the padded batch of a[s] * b[s], the lanes of each block added in a fixed order. */
+DENSE_CLONES
+static float regression_dot(const float *restrict a, const float *restrict b, long padded)
+{
+    dense_lanes sum = {0};
+    for (long s = 0; s < padded; s += DENSE_BLOCK)
+        sum += *(const dense_lanes *)(a + s) * *(const dense_lanes *)(b + s);
+    float total = 0.0f;
+    for (int lane = 0; lane < DENSE_BLOCK; lane++)
+        total += sum[lane];
+    return total;
+}
+
+/* z = W a + b over the padded batch; ReLU unless it is the output layer. */
+DENSE_CLONES
+static void regression_forward_layer(const regression_layer *layer, const float *restrict in,
+                                     float *restrict out, long padded, int relu)
+{
+    for (int o = 0; o < layer->outputs; o++) {
+        float *restrict z = out + o * padded;
+        const float *w = layer->weight + (long)o * layer->inputs;
+        for (long s = 0; s < padded; s += DENSE_BLOCK) {
+            dense_lanes sum = {0};
+            for (int i = 0; i < layer->inputs; i++)
+                sum += w[i] * *(const dense_lanes *)(in + i * padded + s);
+            sum += layer->bias[o];
+            if (relu)
+                sum = regression_where_positive(sum, sum);
+            *(dense_lanes *)(z + s) = sum;
+        }
+    }
+}
+
+/* The gradient of the layer's inputs, W^T g, masked where the input's ReLU was off. */
+DENSE_CLONES
+static void regression_back_layer(const regression_layer *layer, const float *restrict grad,
+                                  const float *restrict in, float *restrict in_grad, long padded)
+{
+    for (int i = 0; i < layer->inputs; i++) {
+        for (long s = 0; s < padded; s += DENSE_BLOCK) {
+            dense_lanes sum = {0};
+            for (int o = 0; o < layer->outputs; o++)
+                sum += layer->weight[(long)o * layer->inputs + i]
+                       * *(const dense_lanes *)(grad + o * padded + s);
+            const dense_lanes on = *(const dense_lanes *)(in + i * padded + s);
+            *(dense_lanes *)(in_grad + i * padded + s) = regression_where_positive(on, sum);
+        }
+    }
+}
+
+/* One step on ``batch`` states (row-major, batch x features) and their target values; returns
+ * the batch's mean squared error before the step. ``act`` holds the sum of the widths times the
+ * padded batch, ``grads`` twice the widest layer times it, ``param_grad`` the largest layer's
+ * weights and biases. */
+static double regression_step(const regression_layer *layers, int count, const float *mean,
+                              const float *std, float value_scale, const float *states,
+                              const float *targets, long batch, float *act, float *grads,
+                              float *param_grad, const adam_settings *adam)
+{
+    const long padded = (batch + DENSE_BLOCK - 1) / DENSE_BLOCK * DENSE_BLOCK;
+    const int features = layers[0].inputs;
+    float *inputs[REGRESSION_MAX_LAYERS + 1];
+    inputs[0] = act;
+    for (int l = 0; l < count; l++)
+        inputs[l + 1] = inputs[l] + (long)layers[l].inputs * padded;
+    for (int i = 0; i < features; i++) {
+        float *row = inputs[0] + i * padded;
+        for (long s = 0; s < batch; s++)
+            row[s] = (states[s * features + i] - mean[i]) / std[i];
+        memset(row + batch, 0, (padded - batch) * sizeof(float));
+    }
+    for (int l = 0; l < count; l++)
+        regression_forward_layer(&layers[l], inputs[l], inputs[l + 1], padded, l < count - 1);
+
+    /* The output's gradient: d/dz of mean((scale tanh z - y)^2), zero on the padding. */
+    long widest = 0;
+    for (int l = 0; l < count; l++)
+        widest = layers[l].outputs > widest ? layers[l].outputs : widest;
+    float *grad = grads, *in_grad = grads + widest * padded;
+    double squares = 0.0;
+    for (long s = 0; s < padded; s++) {
+        if (s >= batch) {
+            grad[s] = 0.0f;
+            continue;
+        }
+        const float t = tanhf(inputs[count][s]);
+        const float error = value_scale * t - targets[s];
+        squares += (double)error * error;
+        grad[s] = 2.0f * error / (float)batch * value_scale * (1.0f - t * t);
+    }
+    for (int l = count - 1; l >= 0; l--) {
+        const regression_layer *layer = &layers[l];
+        if (l > 0)
+            regression_back_layer(layer, grad, inputs[l], in_grad, padded);
+        float *weight_grad = param_grad, *bias_grad = param_grad
+                                                      + (long)layer->outputs * layer->inputs;
+        for (int o = 0; o < layer->outputs; o++) {
+            for (int i = 0; i < layer->inputs; i++)
+                weight_grad[(long)o * layer->inputs + i] =
+                    regression_dot(grad + o * padded, inputs[l] + i * padded, padded);
+            dense_lanes sum = {0};
+            for (long s = 0; s < padded; s += DENSE_BLOCK)
+                sum += *(const dense_lanes *)(grad + o * padded + s);
+            float total = 0.0f;
+            for (int lane = 0; lane < DENSE_BLOCK; lane++)
+                total += sum[lane];
+            bias_grad[o] = total;
+        }
+        regression_adam(layer->weight, weight_grad, layer->weight_mean, layer->weight_square,
+                        (long)layer->outputs * layer->inputs, adam);
+        regression_adam(layer->bias, bias_grad, layer->bias_mean, layer->bias_square,
+                        layer->outputs, adam);
+        float *swap = grad;
+        grad = in_grad;
+        in_grad = swap;
+    }
+    return squares / (double)batch;
+}
+
+#endif

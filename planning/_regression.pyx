@@ -1,0 +1,131 @@
+# cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True
+# cython: initializedcheck=False
+"""The value network's Adam step on a batch's mean squared error, compiled
+(``planning/_regression.h``): ``cloud_service.value_learner`` trains with it on the CPU, and
+torch's own step is its reference. It reads and writes the network's tensors and Adam's moments
+in place, through the arrays it is built on."""
+
+import numpy as np
+
+from libc.stdlib cimport free, malloc
+
+
+cdef extern from *:
+    """
+    #ifndef PLANNING_SOURCE_DIGEST
+    #define PLANNING_SOURCE_DIGEST ""
+    #endif
+    """
+    const char *PLANNING_SOURCE_DIGEST
+
+SOURCE_DIGEST = PLANNING_SOURCE_DIGEST.decode()
+
+
+cdef extern from "_regression.h" nogil:
+    enum: REGRESSION_MAX_LAYERS
+    enum: DENSE_BLOCK
+    ctypedef struct regression_layer:
+        int inputs, outputs
+        float *weight
+        float *bias
+        float *weight_mean
+        float *weight_square
+        float *bias_mean
+        float *bias_square
+    ctypedef struct adam_settings:
+        double learning_rate, beta1, beta2, eps, weight_decay
+        long step
+    double regression_step(const regression_layer *layers, int count, const float *mean,
+                           const float *std, float value_scale, const float *states,
+                           const float *targets, long batch, float *act, float *grads,
+                           float *param_grad, const adam_settings *adam)
+
+
+cdef float *writable(object array, tuple shape) except NULL:
+    """The float32 memory of ``array``, which must be C-contiguous, writable and ``shape``."""
+    cdef float[::1] flat
+    if not isinstance(array, np.ndarray) or array.dtype != np.float32 \
+            or array.shape != shape or not array.flags.c_contiguous \
+            or not array.flags.writeable:
+        raise ValueError(f"expected a writable C-contiguous float32 array of shape {shape}")
+    flat = array.reshape(-1)
+    return &flat[0]
+
+
+cdef class ValueRegression:
+    """Adam steps of one value network: ``layers`` lists each linear layer's (weight, bias,
+    weight's first and second moments, bias's first and second moments), the arrays the step
+    updates in place; ``mean`` and ``std`` are its standardization, ``value_scale`` the scale of
+    its tanh output."""
+
+    cdef regression_layer layers[REGRESSION_MAX_LAYERS]
+    cdef int count
+    cdef list kept  # the arrays whose memory the layers point into
+    cdef float[::1] mean, std
+    cdef float value_scale
+    cdef long widths_sum, widest, largest
+
+    def __init__(self, list layers, mean, std, float value_scale):
+        if not 1 <= len(layers) <= REGRESSION_MAX_LAYERS:
+            raise ValueError(f"1 to {REGRESSION_MAX_LAYERS} layers, not {len(layers)}")
+        self.count = len(layers)
+        self.kept = []
+        self.mean = np.ascontiguousarray(mean, dtype=np.float32)
+        self.std = np.ascontiguousarray(std, dtype=np.float32)
+        self.value_scale = value_scale
+        self.widths_sum = self.widest = self.largest = 0
+        cdef int l, inputs, outputs
+        for l, arrays in enumerate(layers):
+            weight, bias, weight_mean, weight_square, bias_mean, bias_square = arrays
+            outputs, inputs = weight.shape
+            if l > 0 and inputs != self.layers[l - 1].outputs:
+                raise ValueError(f"layer {l} takes {inputs} inputs after "
+                                 f"{self.layers[l - 1].outputs} outputs")
+            self.layers[l].inputs, self.layers[l].outputs = inputs, outputs
+            self.layers[l].weight = writable(weight, (outputs, inputs))
+            self.layers[l].bias = writable(bias, (outputs,))
+            self.layers[l].weight_mean = writable(weight_mean, (outputs, inputs))
+            self.layers[l].weight_square = writable(weight_square, (outputs, inputs))
+            self.layers[l].bias_mean = writable(bias_mean, (outputs,))
+            self.layers[l].bias_square = writable(bias_square, (outputs,))
+            self.kept.append(arrays)
+            self.widths_sum += inputs
+            self.widest = max(self.widest, outputs)
+            self.largest = max(self.largest, outputs * (inputs + 1))
+        if self.layers[self.count - 1].outputs != 1:
+            raise ValueError("a value network ends in one output")
+        self.widths_sum += 1
+        if self.mean.shape[0] != self.layers[0].inputs or self.std.shape[0] != self.mean.shape[0]:
+            raise ValueError("the standardization does not match the first layer")
+
+    def step(self, const float[:, ::1] states, const float[::1] targets, long step,
+             double learning_rate, double beta1, double beta2, double eps,
+             double weight_decay):
+        """Adam's step number ``step`` (from 1) on ``states`` (batch, features) and their
+        ``targets``; returns the batch's mean squared error before it."""
+        cdef long batch = states.shape[0]
+        if batch < 1 or targets.shape[0] != batch or states.shape[1] != self.layers[0].inputs:
+            raise ValueError(f"states of shape ({batch}, {states.shape[1]}) and "
+                             f"{targets.shape[0]} targets for a network of "
+                             f"{self.layers[0].inputs} inputs")
+        cdef long padded = (batch + DENSE_BLOCK - 1) // DENSE_BLOCK * DENSE_BLOCK
+        cdef adam_settings adam
+        adam.learning_rate, adam.beta1, adam.beta2 = learning_rate, beta1, beta2
+        adam.eps, adam.weight_decay, adam.step = eps, weight_decay, step
+        cdef float *act = <float *>malloc(self.widths_sum * padded * sizeof(float))
+        cdef float *grads = <float *>malloc(2 * self.widest * padded * sizeof(float))
+        cdef float *param_grad = <float *>malloc(self.largest * sizeof(float))
+        cdef double loss
+        if act == NULL or grads == NULL or param_grad == NULL:
+            free(act)
+            free(grads)
+            free(param_grad)
+            raise MemoryError()
+        with nogil:
+            loss = regression_step(self.layers, self.count, &self.mean[0], &self.std[0],
+                                   self.value_scale, &states[0, 0], &targets[0], batch, act,
+                                   grads, param_grad, &adam)
+        free(act)
+        free(grads)
+        free(param_grad)
+        return loss

@@ -1,0 +1,203 @@
+"""The value network's compiled training step (planning/_regression.pyx) against exact
+arithmetic: its gradients within a bound derived from float32 arithmetic, its Adam step as
+torch defines it on the moments it keeps, and the state it shares with torch's own step."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from cloud_service.torch_networks import TorchValueNetwork
+from cloud_service.value_regression import CompiledRegression, regression, torch_regression
+from planning import PLANNER_VARIABLE
+from planning.compiled import compiled_module
+from tests import float32_bounds as bounds
+
+U = bounds.UNIT_ROUNDOFF
+STATE_SIZE, BATCH = 36, 200
+# A step of Adam with both betas 0, no decay and lr = eps = E moves a parameter by
+# E g / (|g| + E), within |g| / E of g itself: a power of two keeps E g exact.
+REVEALING = {"lr": 2.0**20, "betas": (0.0, 0.0), "eps": 2.0**20, "weight_decay": 0.0}
+PAPER = {"lr": 1e-3, "betas": (0.9, 0.999), "eps": 1e-8, "weight_decay": 1e-4}
+
+
+def rounded(exact: np.ndarray, error: np.ndarray) -> np.ndarray:
+    """The error bound of one float32 operation's result: its operands' ``error`` carried to
+    ``exact``, then the rounding, u of the computed magnitude."""
+    return error + U * (np.abs(exact) + error)
+
+
+def network_and_batch(seed: int) -> tuple[TorchValueNetwork, np.ndarray, np.ndarray]:
+    """A network as training starts it, standardized on its inputs, and a batch with targets
+    across the value range."""
+    torch.manual_seed(seed)
+    net = TorchValueNetwork(STATE_SIZE, 2.0)
+    rng = np.random.default_rng(seed)
+    states = (rng.standard_normal((BATCH, STATE_SIZE)) * 5 + 2).astype(np.float32)
+    net.standardize.fit(torch.from_numpy(states))
+    targets = rng.uniform(-1.9, 1.9, BATCH).astype(np.float32)
+    return net, states, targets
+
+
+def gradients(net: TorchValueNetwork, states: np.ndarray,
+              targets: np.ndarray) -> list[bounds.Bounded]:
+    """The exact gradient of the batch's mean squared error with respect to each parameter
+    (weight, bias of each layer in order), and the most a float32 backward (any order of
+    summation) may stray from it, carried op by op from the forward's bounds."""
+    network = net.inference()
+    found = bounds.layers(network, states)
+    scale, batch = float(net.value_scale), len(targets)
+    z, z_error = found[-1].exact[:, 0], found[-1].bound[:, 0]
+    t = np.tanh(z)
+    t_error = z_error + bounds.TRANSCENDENTAL_ERROR * (np.abs(t) + z_error)
+    miss = scale * t - targets
+    miss_error = rounded(miss, rounded(scale * t, scale * t_error))
+    first = 2 * miss / batch * scale  # 2 x is exact; the division and the scaling round
+    first_error = rounded(first, scale * rounded(2 * miss / batch, 2 * miss_error / batch))
+    slope = 1 - t * t
+    slope_error = rounded(slope, rounded(t * t, (2 * np.abs(t) + t_error) * t_error))
+    grad = (first * slope)[:, None]
+    grad_error = rounded(grad[:, 0], np.abs(first) * slope_error + first_error * np.abs(slope)
+                         + first_error * slope_error)[:, None]
+    tensors = {name: t.astype(np.float64) for name, t in network.tensors.items()}
+    found_params: list[bounds.Bounded] = []
+    for layer in range(len(found) - 2, -1, -1):
+        inputs = found[layer].exact if layer == 0 else np.maximum(found[layer].exact, 0.0)
+        in_error = found[layer].bound
+        weight = tensors[f"body.{2 * layer}.weight"]  # (outputs, inputs)
+        magnitude = np.abs(grad) + grad_error
+        padded = -(-batch // 16) * 16
+        weight_grad = grad.T @ inputs
+        weight_error = (grad_error.T @ (np.abs(inputs) + in_error) + np.abs(grad).T @ in_error
+                        + bounds.gamma(padded) * magnitude.T @ (np.abs(inputs) + in_error))
+        bias_grad = grad.sum(axis=0)
+        bias_error = grad_error.sum(axis=0) + bounds.gamma(padded) * magnitude.sum(axis=0)
+        found_params[:0] = [bounds.Bounded(weight_grad, weight_error),
+                            bounds.Bounded(bias_grad, bias_error)]
+        if layer == 0:
+            break
+        summed = grad @ weight
+        summed_error = (grad_error @ np.abs(weight)
+                        + bounds.gamma(weight.shape[0]) * magnitude @ np.abs(weight))
+        # The ReLU's gate: the float32 forward may open or shut it where the pre-activation
+        # lies within its bound of zero; there the gradient may be all or nothing.
+        gate, pre_error = found[layer].exact > 0, found[layer].bound
+        certain = np.abs(found[layer].exact) > pre_error
+        grad = np.where(gate, summed, 0.0)
+        grad_error = np.where(certain, np.where(gate, summed_error, 0.0),
+                              np.abs(summed) + summed_error)
+    return found_params
+
+
+def parameters(net: TorchValueNetwork) -> list[np.ndarray]:
+    return [p.detach().numpy().astype(np.float64) for layer in net.body
+            if isinstance(layer, torch.nn.Linear) for p in (layer.weight, layer.bias)]
+
+
+def adam(net: TorchValueNetwork, settings: dict) -> torch.optim.Adam:
+    return torch.optim.Adam(net.parameters(), fused=True, **settings)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_each_parameter_moves_by_its_gradient(seed):
+    net, states, targets = network_and_batch(seed)
+    expected = gradients(net, states, targets)
+    before = parameters(net)
+    CompiledRegression(net, adam(net, REVEALING))(states, targets)
+    after = parameters(net)
+    big = REVEALING["lr"]
+    for k, (old, new, gradient) in enumerate(zip(before, after, expected, strict=True)):
+        moved = old - new
+        want = big * gradient.exact / (np.abs(gradient.exact) + big)
+        # x -> E x / (|x| + E) is 1-Lipschitz; the step's sqrt, sum and division round (4u of
+        # the move), and the parameter's subtraction half a unit in its last place.
+        allowed = gradient.bound + 4 * U * np.abs(moved) + U * np.abs(new)
+        excess = np.abs(moved - want) - allowed
+        assert excess.max() <= 0, (k, float(excess.max()), float(np.abs(want).max()))
+    assert max(np.abs(g.exact).max() for g in expected) > 1e-3  # the step had work to do
+
+
+def test_adam_steps_as_torch_defines_it_on_its_own_moments():
+    net, states, targets = network_and_batch(5)
+    optimizer = adam(net, PAPER)
+    step = CompiledRegression(net, optimizer)
+    for _ in range(3):  # moments away from zero
+        step(states[::-1].copy(), targets[::-1].copy())
+    linears = [layer for layer in net.body if isinstance(layer, torch.nn.Linear)]
+    params = [p for layer in linears for p in (layer.weight, layer.bias)]
+    snapshot = [{key: value.numpy().astype(np.float64).copy() for key, value in
+                 optimizer.state[p].items()} | {"param": p.detach().numpy().astype(np.float64)}
+                for p in params]
+    expected = gradients(net, states, targets)
+    step(states, targets)
+    beta1, beta2 = PAPER["betas"]
+    keep1, beta2_f, keep2 = (float(np.float32(1 - beta1)), float(np.float32(beta2)),
+                             float(np.float32(1 - beta2)))
+    decay, eps = float(np.float32(PAPER["weight_decay"])), float(np.float32(PAPER["eps"]))
+    number = 4
+    step_size = float(np.float32(PAPER["lr"] / (1 - beta1**number)))
+    correction2_sqrt = float(np.float32(np.sqrt(1 - beta2**number)))
+    for p, old, gradient in zip(params, snapshot, expected, strict=True):
+        state = optimizer.state[p]
+        assert float(state["step"]) == number
+        mean, square = state["exp_avg"].numpy(), state["exp_avg_sq"].numpy()
+        # The decayed gradient, its moments, as the loop rounds each operation.
+        decayed = gradient.exact + decay * old["param"]
+        decayed_error = rounded(decayed, gradient.bound + U * np.abs(decay * old["param"]))
+        shift = decayed - old["exp_avg"]
+        mean_want = old["exp_avg"] + shift * keep1
+        mean_error = rounded(mean_want, rounded(shift * keep1,
+                                                keep1 * rounded(shift, decayed_error)))
+        assert np.all(np.abs(mean - mean_want) <= mean_error)
+        square_want = beta2_f * old["exp_avg_sq"] + keep2 * decayed**2
+        fresh_error = rounded(keep2 * decayed**2, rounded(
+            keep2 * decayed, keep2 * decayed_error) * (np.abs(decayed) + decayed_error)
+            + keep2 * np.abs(decayed) * decayed_error)
+        square_error = rounded(square_want, U * beta2_f * old["exp_avg_sq"] + fresh_error)
+        assert np.all(np.abs(square - square_want) <= square_error)
+        # The update from the moments the step kept: a product, a quotient, a sqrt, a sum of
+        # positives and a division, each rounding once (6u of it), then the subtraction.
+        update = step_size * mean / (np.sqrt(square) / correction2_sqrt + eps)
+        new = p.detach().numpy().astype(np.float64)
+        allowed = 6 * U * np.abs(update) + U * np.abs(new)
+        assert np.all(np.abs((old["param"] - new) - update) <= allowed)
+
+
+def test_torch_goes_on_where_the_compiled_step_left_off():
+    """Both steps keep Adam's state in the one optimizer: a run (or a checkpoint) may change
+    hands, and each step keeps the count."""
+    net, states, targets = network_and_batch(3)
+    optimizer = adam(net, PAPER)
+    compiled = CompiledRegression(net, optimizer)
+    for _ in range(2):
+        compiled(states, targets)
+    torch_regression(net, optimizer)(states, targets)
+    compiled(states, targets)
+    for p in net.parameters():
+        state = optimizer.state[p]
+        assert float(state["step"]) == 4 and state["step"].dtype == torch.float32
+    loaded = adam(net, PAPER)
+    loaded.load_state_dict(optimizer.state_dict())
+    CompiledRegression(net, loaded)(states, targets)
+    assert float(loaded.state[next(net.parameters())]["step"]) == 5
+
+
+def test_the_environment_chooses_the_step(monkeypatch):
+    net, _, _ = network_and_batch(0)
+    monkeypatch.delenv(PLANNER_VARIABLE, raising=False)
+    assert isinstance(regression(net, adam(net, PAPER)), CompiledRegression)
+    monkeypatch.setenv(PLANNER_VARIABLE, "reference")
+    assert not isinstance(regression(net, adam(net, PAPER)), CompiledRegression)
+
+
+def test_a_bad_batch_is_refused_in_one_line():
+    net, states, targets = network_and_batch(0)
+    step = CompiledRegression(net, adam(net, PAPER))
+    with pytest.raises(ValueError, match="targets"):
+        step(states, targets[:-1])
+    with pytest.raises(ValueError, match="inputs"):
+        step(states[:, :-1].copy(), targets)
+    core = compiled_module("_regression")
+    with pytest.raises(ValueError, match="float32"):
+        core.ValueRegression([(np.zeros((1, 3)),) * 6], np.zeros(3), np.ones(3), 2.0)
