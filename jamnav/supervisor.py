@@ -477,11 +477,11 @@ class Supervisor:
             self._say(f"the cloud goes on with the memory of earlier runs in {c.run_dir}; "
                       "a new --run-dir starts afresh")
         (c.run_dir / "logs").mkdir(parents=True, exist_ok=True)
-        previous = {sig: signal.signal(sig, lambda *_: self.stop.set())
-                    for sig in (signal.SIGINT, signal.SIGTERM)}
         statuses: list[ProcessStatus] = []
         login = self._operator_login()
         self._make_link_certificates()
+        previous = {sig: signal.signal(sig, lambda *_: self.stop.set())
+                    for sig in (signal.SIGINT, signal.SIGTERM)}
         try:
             for ident in range(c.routers):
                 self._start("router", ident)

@@ -33,6 +33,17 @@ def pytest_sessionstart(session) -> None:
                         f"torch kernels: {torch.backends.cpu.get_cpu_capability()}")
 
 
+@pytest.fixture(autouse=True)
+def signal_handlers_restored():
+    """A command run in-process installs its process's SIGINT and SIGTERM handlers, as it
+    would running alone (some before they find their bad input): each test starts from the
+    handlers the one before it found, so that tests of Ctrl-C see Python's own."""
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    for sig, handler in handlers.items():
+        signal.signal(sig, handler)
+
+
 @pytest.fixture(scope="session")
 def scenario() -> Scenario:
     return load_scenario()
