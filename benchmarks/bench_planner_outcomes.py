@@ -30,7 +30,7 @@ def run() -> list[Figure]:
         success = {planner: 100 * float(np.mean(o == "success"))
                    for planner, o in outcomes.items()}
         same += int(np.sum(outcomes["reference"] == outcomes["compiled"]))
-        flown += len(outcomes["reference"])
+        flown += outcomes["reference"].size
         figures += [
             Figure(f"{setting.label}: success, reference %", success["reference"], "%"),
             Figure(f"{setting.label}: success, compiled %", success["compiled"], "%"),
