@@ -65,12 +65,12 @@ class RasterMaps:
             return RasterMap(self.scenario, [self.raster(None)], np.zeros(rows.size, np.int64))
         self.kept = max(self.kept, 2 * world.num_envs)  # never evict a setting in flight
         env = rows // world.num_uavs
-        jammers = [world.jammers_as_of(e, self.moving_every_steps)
-                   for e in range(world.num_envs)]
-        keys = sorted(set(jammers[e] for e in np.unique(env)))
+        jammers = {e: world.jammers_as_of(e, self.moving_every_steps)
+                   for e in np.unique(env).tolist()}
+        keys = sorted(set(jammers.values()))
         position = {key: index for index, key in enumerate(keys)}
         rasters = [self.raster([JammerParams(*jammer) for jammer in key]) for key in keys]
-        which = np.array([position[jammers[e]] for e in env], dtype=np.int64)
+        which = np.array([position[jammers[e]] for e in env.tolist()], dtype=np.int64)
         return RasterMap(self.scenario, rasters, which)
 
 

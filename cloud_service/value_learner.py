@@ -13,7 +13,7 @@ import torch
 
 from cloud_service.torch_networks import TorchValueNetwork
 from cloud_service.training_config import TrainConfig
-from cloud_service.value_regression import regression
+from cloud_service.value_regression import RegressionStep, regression
 from planning.features import METHODS, joint_state_size
 from shared.scenario import Scenario
 
@@ -71,6 +71,7 @@ class Learner:
     best: TorchValueNetwork  # the best-validated net so far
     optimizer: torch.optim.Adam
     memory: ReplayMemory
+    step: RegressionStep | None = None  # the mini-batch step, kept from episode to episode
 
     @classmethod
     def fresh(cls, scenario: Scenario, config: TrainConfig) -> Learner:
@@ -106,9 +107,9 @@ class Learner:
         """The mini-batch steps after an episode, once D holds a batch."""
         if self.memory.size < config.batch_size:
             return
-        step = regression(self.net, self.optimizer)
+        self.step = regression(self.net, self.optimizer, self.step)
         for _ in range(config.updates_per_episode):
-            step(*self.memory.sample(rng, config.batch_size))
+            self.step(*self.memory.sample(rng, config.batch_size))
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.net.state_dict())

@@ -20,9 +20,13 @@ from planning.compiled import chosen_planner, compiled_module
 RegressionStep = Callable[[np.ndarray, np.ndarray], float]
 
 
-def regression(net: TorchValueNetwork, optimizer: torch.optim.Adam) -> RegressionStep:
+def regression(net: TorchValueNetwork, optimizer: torch.optim.Adam,
+               reuse: RegressionStep | None = None) -> RegressionStep:
     """Steps of ``optimizer`` (torch's Adam over ``net``'s parameters) on ``net``: compiled
-    where the network is on the CPU and the planner chosen is the compiled one."""
+    where the network is on the CPU and the planner chosen is the compiled one. ``reuse``: a
+    step made before, returned if it still serves them (its set-up is most of a step's cost)."""
+    if isinstance(reuse, CompiledRegression) and reuse.serves(net, optimizer):
+        return reuse
     group = optimizer.param_groups[0]
     on_cpu = all(p.device.type == "cpu" for p in net.parameters())
     plain_adam = not (group["amsgrad"] or group["maximize"]) and len(optimizer.param_groups) == 1
@@ -51,17 +55,18 @@ class CompiledRegression:
     and its step count follows every step, so torch's own steps may go on from here."""
 
     def __init__(self, net: TorchValueNetwork, optimizer: torch.optim.Adam):
-        self.optimizer = optimizer
+        self.net, self.optimizer = net, optimizer
         group = optimizer.param_groups[0]
         self.settings = (float(group["lr"]), *map(float, group["betas"]), float(group["eps"]),
                          float(group["weight_decay"]))
         linears = [layer for layer in net.body if isinstance(layer, torch.nn.Linear)]
-        self.counters = []
+        self.counters, self.moments = [], []
         layers = []
         for linear in linears:
             arrays = []
             for parameter in (linear.weight, linear.bias):
                 state = self._adam_state(parameter)
+                self.moments.append((parameter, state["exp_avg"], state["exp_avg_sq"]))
                 self.counters.append(state["step"].numpy())
                 arrays.append((parameter.detach().numpy(), state["exp_avg"].numpy(),
                                state["exp_avg_sq"].numpy()))
@@ -70,6 +75,15 @@ class CompiledRegression:
         self.core = compiled_module("_regression").ValueRegression(
             layers, net.standardize.mean.numpy(), net.standardize.std.numpy(),
             float(net.value_scale))
+
+    def serves(self, net: TorchValueNetwork, optimizer: torch.optim.Adam) -> bool:
+        """Whether this step still reads ``net``'s tensors and ``optimizer``'s moments: loading
+        a checkpoint into the optimizer gives it new ones."""
+        if net is not self.net or optimizer is not self.optimizer:
+            return False
+        return all(optimizer.state[p].get("exp_avg") is mean
+                   and optimizer.state[p].get("exp_avg_sq") is square
+                   for p, mean, square in self.moments)
 
     def _adam_state(self, parameter: torch.nn.Parameter) -> dict:
         state = self.optimizer.state[parameter]

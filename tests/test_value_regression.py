@@ -4,6 +4,8 @@ torch defines it on the moments it keeps, and the state it shares with torch's o
 
 from __future__ import annotations
 
+import io
+
 import numpy as np
 import pytest
 import torch
@@ -201,3 +203,21 @@ def test_a_bad_batch_is_refused_in_one_line():
     core = compiled_module("_regression")
     with pytest.raises(ValueError, match="float32"):
         core.ValueRegression([(np.zeros((1, 3)),) * 6], np.zeros(3), np.ones(3), 2.0)
+
+
+def test_a_step_is_kept_until_the_optimizer_takes_other_moments():
+    """Training keeps its step from episode to episode; a checkpoint loaded into the
+    optimizer brings moments of its own, and a step made afresh reads those."""
+    net, states, targets = network_and_batch(4)
+    optimizer = adam(net, PAPER)
+    first = regression(net, optimizer)
+    first(states, targets)
+    assert regression(net, optimizer, first) is first
+    saved = io.BytesIO()
+    torch.save(optimizer.state_dict(), saved)
+    saved.seek(0)
+    optimizer.load_state_dict(torch.load(saved, weights_only=True))
+    again = regression(net, optimizer, first)
+    assert again is not first
+    again(states, targets)
+    assert float(optimizer.state[next(net.parameters())]["step"]) == 2
