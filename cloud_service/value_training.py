@@ -29,6 +29,7 @@ import subprocess
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import IO, Any
@@ -41,9 +42,6 @@ from cloud_service.rollout import (
     OrcaController,
     RasterMaps,
     fly_episodes,
-    outcome_rates,
-    perfect_maps,
-    run_episodes,
 )
 from cloud_service.training_checkpoint import (
     VALUE_NET_FILE,
@@ -53,18 +51,17 @@ from cloud_service.training_checkpoint import (
 )
 from cloud_service.training_config import TrainConfig
 from cloud_service.training_flight import EpisodeStats, TrainingFlight, training_maps
+from cloud_service.training_validation import validate, validation_helper
 from cloud_service.value_learner import Learner, discounted_returns
 from planning.chosen import lookahead_policy
 from planning.features import METHODS, MethodOptions
-from planning.networks import ValueNetwork, save_network
+from planning.networks import save_network
 from planning.reference import PUBLISHED_LOOKAHEAD
 from shared.outcomes import Outcome
-from shared.paper import TABLE_I_JAMMERS
 from shared.resources import resident_mib
 from shared.scenario import Scenario
 from world_sim.core import VectorWorld
 
-VALIDATION_SEED = 20210614  # fixed: every model is scored on the same episodes
 LOG_FILE = "train_log.csv"
 LOG_FIELDS = ["episode", "wall_seconds", "epsilon", "mean_return", "straight_bound",
               "success", "disconnection", "collision", "timeout"]
@@ -205,10 +202,10 @@ class TdLearning:
     def fly_all(self, checkpoint: Checkpoint) -> None:
         """Fly chunk after chunk to the run's last episode, each validated and saved; Ctrl-C
         saves the episodes done and raises KeyboardInterrupt."""
-        with self.interrupt:
+        with self.interrupt, validation_helper() as helper:
             while self.progress.episodes_done < self.config.episodes:
                 if self.fly_chunk():
-                    self.validate_chunk()
+                    self.validate_chunk(helper)
                 self.progress.wall_seconds = self.wall_seconds()
                 checkpoint.save(self.learner, {
                     **asdict(self.progress), "config": asdict(self.config),
@@ -282,13 +279,12 @@ class TdLearning:
                      "recent_success": float(np.mean(np.concatenate(self.recent)
                                                      == Outcome.SUCCESS))})
 
-    def validate_chunk(self) -> None:
+    def validate_chunk(self, helper: Executor | None) -> None:
         """Score the network as it is now; the best-scoring one so far is kept aside."""
         done, scores = self.progress.episodes_done, self.progress.checkpoint_scores
         scores.append({"episode": done, **validate(
-            self.scenario, self.learner.net.inference().read_subnormals_as_zero(),
-            self.config.validation_episodes, self.config.uav_count(self.scenario)),
-            "resident_mib": resident_mib()})
+            self.scenario, self.learner.net.inference(), self.config.validation_episodes,
+            self.config.uav_count(self.scenario), helper), "resident_mib": resident_mib()})
         leader = best_score(scores)
         if leader is scores[-1]:
             self.learner.keep_as_best()
@@ -334,22 +330,6 @@ def run_card(scenario: Scenario, config: TrainConfig, learning: TdLearning, comm
         },
         "reproduce": command or "jamnav train",
     }
-
-
-def validate(scenario: Scenario, net: ValueNetwork, episodes: int, uavs: int) -> dict[str, float]:
-    """Greedy lookahead on the true map, over the fixed validation episodes of each Table I
-    jammer setting: the share of UAV-episodes ending in each outcome."""
-    # The lookahead the network is trained with: selecting checkpoints by the deployed
-    # planner would score the planner as much as the network.
-    policy = lookahead_policy(scenario, net, **PUBLISHED_LOOKAHEAD)
-    outcomes = [
-        run_episodes(scenario, LookaheadController(policy, perfect_maps(scenario)), episodes,
-                     VALIDATION_SEED, setting, uavs).outcomes
-        for setting in TABLE_I_JAMMERS
-    ]
-    rates = outcome_rates(np.concatenate(outcomes))
-    return {**rates, "episodes_per_setting": episodes,
-            "settings": [setting.label for setting in TABLE_I_JAMMERS]}
 
 
 def best_score(scores: list[dict]) -> dict:

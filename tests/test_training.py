@@ -12,10 +12,13 @@ import pytest
 from cloud_service import value_training
 from cloud_service.torch_networks import TorchValueNetwork
 from cloud_service.training_config import MAX_ENVS, TrainConfig
+from cloud_service.training_validation import validate, validation_helper
 from cloud_service.value_learner import ReplayMemory, discounted_returns, td_targets
-from cloud_service.value_training import ARITHMETIC_FLAGS, train, validate
+from cloud_service.value_training import ARITHMETIC_FLAGS, train
 from jamnav.cli import main
 from planning.networks import ValueNetwork, from_bytes, load_network, to_bytes
+from shared.paper import TABLE_I_JAMMERS
+from shared.shipped import EXTENDED_VALUE_NET
 
 CARD_KEYS = {"command", "seed", "episodes", "wall_seconds", "decisions_per_second", "git_commit",
              "validation"}
@@ -76,6 +79,15 @@ def test_resume_keeps_the_earlier_checkpoint_scores(scenario, tmp_path):
     # The shipped weights score what the card says, on the same validation episodes.
     network, _ = load_network(tmp_path / "value_net.safetensors")
     assert validate(scenario, network, 2, 4) == resumed["validation"]
+
+
+def test_a_helper_process_validates_as_the_run_alone_does(scenario):
+    network, _ = load_network(EXTENDED_VALUE_NET)
+    with validation_helper() as helper:
+        assert helper is not None  # the project's machines have two cores
+        shared = validate(scenario, network, 3, 4, helper)
+    assert shared == validate(scenario, network, 3, 4)
+    assert shared["settings"] == [setting.label for setting in TABLE_I_JAMMERS]
 
 
 def test_envs_are_bounded_before_anything_is_allocated(tmp_path, capsys, monkeypatch):
