@@ -30,6 +30,7 @@ def main() -> int:
         parser.error(f"unknown benchmark(s): {', '.join(sorted(unknown))}")
 
     one_blas_thread(os.environ)
+    os.environ.setdefault("JAMNAV_PLANNER_THREADS", "1")  # one core, as the targets say
     import torch
 
     from benchmarks.common import cpu_name

@@ -293,33 +293,36 @@ cdef class Kernel:
         view.field_x0, view.field_y0, view.cell = field_x0, field_y0, cell
         view.field = NULL
         cdef int64_t chosen
-        for row in range(n):
-            view.levels = &levels[raster_of_row[row], 0, 0]
-            if self.route:
-                view.field = (field_base[raster_of_row[row]]
-                              + slots[row] * field_rows * field_cols)
-                view.offset = offset[row]
-            view.route_missing = False
-            scene.x, scene.y = position[row, 0], position[row, 1]
-            scene.vx, scene.vy = velocity[row, 0], velocity[row, 1]
-            scene.heading = heading[row]
-            scene.dest_x, scene.dest_y = destination[row, 0], destination[row, 1]
-            scene.radius, scene.max_speed = radius[row], max_speed[row]
-            scene.level, scene.below, scene.step = level[row], below_steps[row], step[row]
-            watch_nearest(self, &scene, &others_position[row, 0, 0] if others else NULL,
-                          &others_velocity[row, 0, 0] if others else NULL,
-                          &others_radius[row, 0] if others else NULL,
-                          &others_present[row, 0] if others else NULL, others)
-            chosen = decide_row(self, work, &scene, &view,
-                                &others_position[row, 0, 0] if others else NULL,
-                                &others_present[row, 0] if others else NULL, others,
-                                &score[row, 0], &allowed[row, 0])
-            action[row] = chosen
-            speed[row] = self.speeds[chosen]
-            new_heading[row] = wrap_angle(scene.heading
-                                          + self.turns[self.turn_of_action[chosen]])
-            value[row] = score[row, chosen]
-            route_missing[row] = view.route_missing
+        # Each row alone, free of Python objects: callers may decide a batch's halves on two
+        # threads at once (planning.compiled.on_two_cores).
+        with nogil:
+            for row in range(n):
+                view.levels = &levels[raster_of_row[row], 0, 0]
+                if self.route:
+                    view.field = (field_base[raster_of_row[row]]
+                                  + slots[row] * field_rows * field_cols)
+                    view.offset = offset[row]
+                view.route_missing = False
+                scene.x, scene.y = position[row, 0], position[row, 1]
+                scene.vx, scene.vy = velocity[row, 0], velocity[row, 1]
+                scene.heading = heading[row]
+                scene.dest_x, scene.dest_y = destination[row, 0], destination[row, 1]
+                scene.radius, scene.max_speed = radius[row], max_speed[row]
+                scene.level, scene.below, scene.step = level[row], below_steps[row], step[row]
+                watch_nearest(self, &scene, &others_position[row, 0, 0] if others else NULL,
+                              &others_velocity[row, 0, 0] if others else NULL,
+                              &others_radius[row, 0] if others else NULL,
+                              &others_present[row, 0] if others else NULL, others)
+                chosen = decide_row(self, work, &scene, &view,
+                                    &others_position[row, 0, 0] if others else NULL,
+                                    &others_present[row, 0] if others else NULL, others,
+                                    &score[row, 0], &allowed[row, 0])
+                action[row] = chosen
+                speed[row] = self.speeds[chosen]
+                new_heading[row] = wrap_angle(scene.heading
+                                              + self.turns[self.turn_of_action[chosen]])
+                value[row] = score[row, chosen]
+                route_missing[row] = view.route_missing
 
 
 cdef class Workspace:

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import importlib
 import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import ModuleType
 
@@ -33,3 +35,38 @@ def compiled_module(name: str) -> ModuleType:
         raise PlannerError(f"the planner's compiled core ({name}) was built from other source "
                            f"than is beside it: {REMEDY}")
     return module
+
+
+THREADS_VARIABLE = "JAMNAV_PLANNER_THREADS"
+
+
+def planner_threads() -> int:
+    """The threads the compiled core may use at once: ``JAMNAV_PLANNER_THREADS``, 1 or 2
+    (the default)."""
+    choice = os.environ.get(THREADS_VARIABLE, "2")
+    if choice not in ("1", "2"):
+        raise PlannerError(f"{THREADS_VARIABLE}={choice!r}: expected 1 or 2")
+    return int(choice)
+
+
+# Rows below this many are decided on one thread: a second one costs more to start than it
+# saves on a small batch (an agent's one UAV).
+SPLIT_AT = 32
+_second_thread: ThreadPoolExecutor | None = None
+
+
+def on_two_cores(work: Callable[[slice], None], count: int, split_at: int = SPLIT_AT) -> None:
+    """``work(part)`` over ``count`` items, the second half on a second thread while this one
+    does the first, where both are worth it: at least ``split_at`` items, a second core, and
+    JAMNAV_PLANNER_THREADS not 1 (the benchmarks' one core). The core's loops run without the
+    GIL and decide each item alone, so the halves give what one call over all of them gives."""
+    global _second_thread
+    if count < split_at or (os.cpu_count() or 1) < 2 or planner_threads() == 1:
+        work(slice(0, count))
+        return
+    if _second_thread is None:
+        _second_thread = ThreadPoolExecutor(1, thread_name_prefix="planning")
+    half = count // 2
+    second = _second_thread.submit(work, slice(half, count))
+    work(slice(0, half))
+    second.result()

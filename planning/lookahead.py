@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from planning.compiled import compiled_module
+from planning.compiled import compiled_module, on_two_cores
 from planning.features import ABSENT_DISTANCE, joint_state_size
 from planning.maps import RasterMap, RouteFields
 from planning.networks import ValueNetwork
@@ -139,9 +139,16 @@ class CompiledLookahead(LookaheadPolicy):
              out: tuple) -> None:
         first = radio_map.first
         which = np.ascontiguousarray(radio_map.which, dtype=np.int64)
-        self.kernel.decide(*state, radio_map.stack, which, first.x0, first.y0, first.spacing,
-                           fields.stores, fields.slots, fields.offset, fields.x0, fields.y0,
-                           fields.cell, *out)
+        routed = len(fields.slots) > 0
+
+        def decide(rows: slice) -> None:
+            self.kernel.decide(*(part[rows] for part in state), radio_map.stack, which[rows],
+                               first.x0, first.y0, first.spacing, fields.stores,
+                               fields.slots[rows] if routed else fields.slots,
+                               fields.offset[rows] if routed else fields.offset, fields.x0,
+                               fields.y0, fields.cell, *(part[rows] for part in out))
+
+        on_two_cores(decide, len(which))
 
 
 def _float32(array: np.ndarray) -> np.ndarray:

@@ -13,6 +13,8 @@ from shared.threads import one_blas_thread
 # The test run is a program of its own: its in-process flights and the processes it starts run
 # BLAS on one thread, as the system's do. Set before numpy loads (shared.scenario loads it).
 one_blas_thread(os.environ)
+# Two test workers share the two cores: the planner's second thread is tested where asked for.
+os.environ.setdefault("JAMNAV_PLANNER_THREADS", "1")
 
 from shared.scenario import SCENARIO_DIR, Scenario, load_scenario  # noqa: E402
 

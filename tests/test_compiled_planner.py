@@ -20,6 +20,7 @@ from cloud_service.rollout import perfect_maps
 from cloud_service.torch_networks import TorchValueNetwork
 from planning import PLANNER_VARIABLE, PlannerError
 from planning.chosen import lookahead_policy
+from planning.compiled import THREADS_VARIABLE
 from planning.features import (
     EXTENDED_METHOD,
     joint_state_size,
@@ -227,3 +228,23 @@ def test_jamnav_reports_a_bad_planner_in_one_line():
                           env={**os.environ, PLANNER_VARIABLE: "fast"})
     assert done.returncode == 2
     assert done.stderr.strip().count("\n") == 0 and PLANNER_VARIABLE in done.stderr
+
+
+def test_two_threads_decide_a_batch_as_one_does(scenario, monkeypatch):
+    """A batch's halves decided on two threads at once (planning.compiled.on_two_cores): the
+    same decisions, scores and safe cells, bit for bit."""
+    rng = np.random.default_rng(6)
+    network, _ = load_network(EXTENDED_VALUE_NET)
+    fleet, radio_map = random_fleet(scenario, rng, 300, 5), jammed_map(scenario, rng, 300)
+    scored = {}
+    for threads in ("1", "2"):
+        monkeypatch.setenv(THREADS_VARIABLE, threads)
+        scored[threads] = CompiledLookahead(scenario, network).decide_scored(fleet, radio_map)
+    for name in ("score", "allowed"):
+        np.testing.assert_array_equal(getattr(scored["2"], name), getattr(scored["1"], name))
+    for name in ("action", "speed", "heading", "value"):
+        np.testing.assert_array_equal(getattr(scored["2"].decision, name),
+                                      getattr(scored["1"].decision, name))
+    monkeypatch.setenv(THREADS_VARIABLE, "4")
+    with pytest.raises(PlannerError, match=THREADS_VARIABLE):
+        CompiledLookahead(scenario, network).decide(fleet, radio_map)

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from planning import PLANNER_VARIABLE
-from planning.compiled import compiled_module
+from planning.compiled import THREADS_VARIABLE, compiled_module
 from planning.routes import EdgeWeights, RouteGrid, SweptFields
 
 
@@ -133,7 +133,7 @@ def test_the_compiled_builder_refuses_a_node_off_the_grid_and_mismatched_argumen
 
 def test_the_planner_variable_chooses_the_builder_of_route_fields(monkeypatch):
     monkeypatch.delenv(PLANNER_VARIABLE, raising=False)
-    assert grid(np.ones((3, 3)))._build.func is COMPILED.route_fields
+    assert grid(np.ones((3, 3)))._build.args[0].func is COMPILED.route_fields
     monkeypatch.setenv(PLANNER_VARIABLE, "reference")
     assert isinstance(grid(np.ones((3, 3)))._build, SweptFields)
 
@@ -177,3 +177,13 @@ def test_fields_stopped_at_a_reach_read_as_whole_fields_even_beyond_it(seed, cos
     far = rng.uniform(0, 118, size=(6, 5, 2))
     np.testing.assert_array_equal(reached.distance(far, destinations),
                                   whole.distance(far, destinations))
+
+
+def test_two_threads_build_the_fields_one_does(monkeypatch):
+    monkeypatch.setenv(THREADS_VARIABLE, "2")
+    covered = np.random.default_rng(8).random((40, 30)) < 0.7
+    routes = grid(covered, cost=9.0)
+    nodes = np.arange(0, 1200, 37)
+    limits = np.where(nodes % 2 == 0, np.inf, 20.0)
+    np.testing.assert_array_equal(routes._build(nodes, limits),
+                                  COMPILED.route_fields(*routes.weights, nodes, limits))
