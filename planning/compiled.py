@@ -61,7 +61,7 @@ def on_two_cores(work: Callable[[slice], None], count: int, split_at: int = SPLI
     JAMNAV_PLANNER_THREADS not 1 (the benchmarks' one core). The core's loops run without the
     GIL and decide each item alone, so the halves give what one call over all of them gives."""
     global _second_thread
-    if count < split_at or (os.cpu_count() or 1) < 2 or planner_threads() == 1:
+    if planner_threads() == 1 or count < split_at or (os.cpu_count() or 1) < 2:
         work(slice(0, count))
         return
     if _second_thread is None:
