@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from planning.compiled import one_planner_thread
 from shared.paper import TABLE_I_JAMMERS, TABLE_I_RESULTS, JammerSetting
 from shared.scenario import Scenario, ScenarioError, load_scenario
 
@@ -183,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     jobs = [(v, args.scenario, args.out, args.episodes, args.eval_episodes, args.seed)
             for v in todo]
     if jobs:
-        with multiprocessing.get_context("spawn").Pool(min(args.jobs, len(jobs))) as pool:
+        with multiprocessing.get_context("spawn").Pool(min(args.jobs, len(jobs)),
+                                                       one_planner_thread) as pool:
             for result in pool.imap_unordered(_run_in_worker, jobs):
                 done[result["variant"]] = result
                 mean = result["table_i_mean"]["success_rate"]

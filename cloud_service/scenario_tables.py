@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from cloud_service.evaluation import RATE_KEYS, evaluate
+from planning.compiled import one_planner_thread
 from shared.scenario import load_scenario
 
 METHODS = ("proposed", "perfect", "outdated")
@@ -39,7 +40,7 @@ def jammer_table_runs(scenarios: Sequence[str], seeds: int, episodes: int, jobs:
     work = [(name, method, seed, episodes) for name in scenarios for method in METHODS
             for seed in range(seeds)]
     runs = []
-    with multiprocessing.get_context("spawn").Pool(jobs) as pool:
+    with multiprocessing.get_context("spawn").Pool(jobs, one_planner_thread) as pool:
         for run in pool.imap_unordered(fly, work):
             runs.append(run)
             if on_run is not None:

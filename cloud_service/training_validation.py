@@ -19,6 +19,7 @@ import numpy as np
 
 from cloud_service.rollout import LookaheadController, outcome_rates, perfect_maps, run_episodes
 from planning.chosen import lookahead_policy
+from planning.compiled import planner_threads
 from planning.networks import ValueNetwork, build_network
 from planning.reference import PUBLISHED_LOOKAHEAD
 from shared.paper import TABLE_I_JAMMERS, JammerSetting
@@ -59,8 +60,9 @@ def setting_outcomes(scenario: Scenario, architecture: dict[str, Any],
 
 @contextmanager
 def validation_helper() -> Iterator[Executor | None]:
-    """A helper process for a run's validations, or None on a machine of one core."""
-    if (os.cpu_count() or 1) < 2:
+    """A helper process for a run's validations, or None on a machine of one core or where
+    the planner keeps to one (``JAMNAV_PLANNER_THREADS=1``)."""
+    if (os.cpu_count() or 1) < 2 or planner_threads() == 1:
         yield None
         return
     with ProcessPoolExecutor(1, mp_context=get_context("spawn"), initializer=_helping,

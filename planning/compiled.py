@@ -49,6 +49,12 @@ def planner_threads() -> int:
     return int(choice)
 
 
+def one_planner_thread() -> None:
+    """Keep this process's planning to one thread (and a training run's validations in it):
+    a pool's workers, which fill the cores between them, start with it."""
+    os.environ[THREADS_VARIABLE] = "1"
+
+
 # Rows below this many are decided on one thread: a second one costs more to start than it
 # saves on a small batch (an agent's one UAV).
 SPLIT_AT = 32

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,10 +21,12 @@ from cloud_service.training_validation import validate, validation_helper
 from cloud_service.value_learner import ReplayMemory, discounted_returns, td_targets
 from cloud_service.value_training import ARITHMETIC_FLAGS, train
 from jamnav.cli import main
+from planning.compiled import THREADS_VARIABLE
 from planning.networks import ValueNetwork, from_bytes, load_network, to_bytes
 from shared.paper import TABLE_I_JAMMERS
 from shared.shipped import EXTENDED_VALUE_NET
 
+ROOT = Path(__file__).resolve().parent.parent
 CARD_KEYS = {"command", "seed", "episodes", "wall_seconds", "decisions_per_second", "git_commit",
              "validation"}
 
@@ -81,8 +88,12 @@ def test_resume_keeps_the_earlier_checkpoint_scores(scenario, tmp_path):
     assert validate(scenario, network, 2, 4) == resumed["validation"]
 
 
-def test_a_helper_process_validates_as_the_run_alone_does(scenario):
+def test_a_helper_process_validates_as_the_run_alone_does(scenario, monkeypatch):
     network, _ = load_network(EXTENDED_VALUE_NET)
+    monkeypatch.setenv(THREADS_VARIABLE, "1")
+    with validation_helper() as helper:
+        assert helper is None  # the run keeps to one core
+    monkeypatch.setenv(THREADS_VARIABLE, "2")
     with validation_helper() as helper:
         assert helper is not None  # the project's machines have two cores
         shared = validate(scenario, network, 3, 4, helper)
@@ -147,3 +158,38 @@ def test_short_training_learns_to_navigate(scenario, tmp_path):
                          epsilon_decay_share=0.3)
     card = train(scenario, config, tmp_path)
     assert card["validation"]["success_rate"] >= 0.2
+
+
+# Opens the validation helper, has it start, prints its pid and waits to be killed.
+HELPED_RUN = """
+import os, sys, time
+from cloud_service.training_validation import validation_helper
+with validation_helper() as helper:
+    print(helper.submit(os.getpid).result(), flush=True)
+    time.sleep(60)
+"""
+
+
+def test_the_helper_ends_with_a_run_killed_outright():
+    run = subprocess.Popen([sys.executable, "-c", HELPED_RUN], cwd=ROOT, text=True,
+                           stdout=subprocess.PIPE,
+                           env=dict(os.environ, **{THREADS_VARIABLE: "2"}))
+    try:
+        helper = int(run.stdout.readline())
+        assert helper != run.pid
+    finally:
+        run.kill()
+        run.wait(timeout=10)
+    deadline = time.monotonic() + 10
+    while helper_alive(helper) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not helper_alive(helper)
+
+
+def helper_alive(pid: int) -> bool:
+    """Whether ``pid`` runs still (a zombie has ended: only its exit status is left)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
