@@ -64,6 +64,11 @@ cdef class ValueRegression:
     cdef float[::1] mean, std
     cdef float value_scale
     cdef long widths_sum, widest, largest
+    # Scratch of the step, kept from step to step for batches up to ``padded_room`` states.
+    cdef float *act
+    cdef float *grads
+    cdef float *param_grad
+    cdef long padded_room
 
     def __init__(self, list layers, mean, std, float value_scale):
         if not 1 <= len(layers) <= REGRESSION_MAX_LAYERS:
@@ -112,20 +117,32 @@ cdef class ValueRegression:
         cdef adam_settings adam
         adam.learning_rate, adam.beta1, adam.beta2 = learning_rate, beta1, beta2
         adam.eps, adam.weight_decay, adam.step = eps, weight_decay, step
-        cdef float *act = <float *>malloc(self.widths_sum * padded * sizeof(float))
-        cdef float *grads = <float *>malloc(2 * self.widest * padded * sizeof(float))
-        cdef float *param_grad = <float *>malloc(self.largest * sizeof(float))
         cdef double loss
-        if act == NULL or grads == NULL or param_grad == NULL:
-            free(act)
-            free(grads)
-            free(param_grad)
-            raise MemoryError()
+        if padded > self.padded_room:
+            self._make_room(padded)
         with nogil:
             loss = regression_step(self.layers, self.count, &self.mean[0], &self.std[0],
-                                   self.value_scale, &states[0, 0], &targets[0], batch, act,
-                                   grads, param_grad, &adam)
-        free(act)
-        free(grads)
-        free(param_grad)
+                                   self.value_scale, &states[0, 0], &targets[0], batch,
+                                   self.act, self.grads, self.param_grad, &adam)
         return loss
+
+    cdef _make_room(self, long padded):
+        """Scratch for batches of up to ``padded`` states (a whole number of blocks)."""
+        self._release()
+        self.act = <float *>malloc(self.widths_sum * padded * sizeof(float))
+        self.grads = <float *>malloc(2 * self.widest * padded * sizeof(float))
+        self.param_grad = <float *>malloc(self.largest * sizeof(float))
+        if self.act == NULL or self.grads == NULL or self.param_grad == NULL:
+            self._release()
+            raise MemoryError()
+        self.padded_room = padded
+
+    cdef void _release(self):
+        free(self.act)
+        free(self.grads)
+        free(self.param_grad)
+        self.act = self.grads = self.param_grad = NULL
+        self.padded_room = 0
+
+    def __dealloc__(self):
+        self._release()

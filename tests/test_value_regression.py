@@ -4,6 +4,7 @@ torch defines it on the moments it keeps, and the state it shares with torch's o
 
 from __future__ import annotations
 
+import copy
 import io
 
 import numpy as np
@@ -221,3 +222,17 @@ def test_a_step_is_kept_until_the_optimizer_takes_other_moments():
     assert again is not first
     again(states, targets)
     assert float(optimizer.state[next(net.parameters())]["step"]) == 2
+
+
+def test_a_step_kept_for_batches_of_any_size_steps_as_a_fresh_one():
+    """The step's scratch, kept from step to step, grows for a larger batch and serves a
+    smaller one after it: each step as a step made for it alone, bit for bit."""
+    net, states, targets = network_and_batch(6)
+    kept_net, fresh_net = net, copy.deepcopy(net)
+    kept_optimizer, fresh_optimizer = adam(kept_net, PAPER), adam(fresh_net, PAPER)
+    kept = CompiledRegression(kept_net, kept_optimizer)
+    for rows in (slice(0, 50), slice(0, 200), slice(100, 117)):
+        assert kept(states[rows], targets[rows]) == CompiledRegression(
+            fresh_net, fresh_optimizer)(states[rows], targets[rows])
+    assert all(np.array_equal(a.detach().numpy(), b.detach().numpy())
+               for a, b in zip(kept_net.parameters(), fresh_net.parameters(), strict=True))
