@@ -14,15 +14,9 @@ import numpy as np
 
 from benchmarks.common import Figure, best_rate
 from jamnav.supervisor import Supervisor, UpConfig
-from shared.measurements import scenario_features
+from shared.measurements import FEATURES_DTYPE, scenario_features
 from shared.scenario import load_scenario
-from uav_agent.uploads import (
-    DEFAULT_BATCH,
-    DEFAULT_CAPACITY,
-    FEATURES_DTYPE,
-    Outbox,
-    open_outbox,
-)
+from uav_agent.uploads import DEFAULT_BATCH, DEFAULT_CAPACITY, Outbox, open_outbox
 
 ROUNDS = 2  # runs of each outbox, alternated; each figure keeps its better run
 EPISODES = 30

@@ -250,8 +250,7 @@ class CloudService:
         key = self.topics.measurements("*")
         try:
             upload = bus.receive(MeasurementUpload, query.key_expr, query.payload)
-            if max((m.time for m in upload.measurements), default=0.0) > (
-                    time.time() + CLOCK_SKEW_S):
+            if upload.newest() > time.time() + CLOCK_SKEW_S:
                 raise MessageError("upload with measurements from the future")
             if upload.round is not None and self.rounds is None:
                 raise MessageError("a round's upload, and the cloud is not on the lockstep "
@@ -294,47 +293,52 @@ class CloudService:
             self.memory.close()
 
     def _handle(self, tasks: list) -> None:
+        kept = []  # uploads the memory takes and nothing learns from: stored together
         for task in tasks:
             if isinstance(task, JammerChanged):
                 self._follow_jammer(task)
             elif isinstance(task, RoundOpened):
                 self.rounds.open(task)
-            else:
+            elif self._learned_from(task[0]):
                 self._upload(*task)
+            else:
+                kept.append(task)
+        self._keep(kept)
         self._close_rounds()
+
+    def _learned_from(self, upload: MeasurementUpload) -> bool:
+        """Whether an upload goes to the online map. On the lockstep clock, one outside a
+        round of this world's (an earlier run's outbox, a round's upload after the round
+        closed without it, a round never opened) is kept, not learned from: the mapper takes
+        whole rounds only."""
+        if self.rounds is None:
+            return self.mapper is not None
+        return upload.round is not None and not self.rounds.stale(upload.round)
 
     def _upload(self, upload: MeasurementUpload, query) -> None:
         if self.rounds is None:
-            _answer(query, self._ingest(upload.measurements))
-        elif upload.round is None or self.rounds.stale(upload.round):
-            self._keep_outside_rounds(upload, query)
+            _answer(query, self._ingest(upload.batch()))
         else:
             self.rounds.add(upload, query)
 
-    def _keep_outside_rounds(self, upload: MeasurementUpload, query) -> None:
-        """On the lockstep clock, an upload outside a round of this world's (an earlier run's
-        outbox, a round's upload after the round closed without it, a round never opened) is
-        kept, not learned from: the mapper takes whole rounds only."""
-        _answer(query, self._count(self.memory.append(upload.measurements),
-                                   len(upload.measurements)))
+    def _keep(self, uploads: list[tuple[MeasurementUpload, Any]]) -> list[MeasurementBatch]:
+        """Store uploads in one transaction and answer each; the rows each one stored."""
+        stored = self.memory.store_each([upload.batch() for upload, _ in uploads])
+        for (upload, query), (rows, duplicates) in zip(uploads, stored, strict=True):
+            _answer(query, self._count((len(rows), duplicates), len(upload.ids)))
+        return [rows for rows, _ in stored]
 
     def _close_rounds(self) -> None:
         """Take every round whose uploads are in: store them in UAV order, have the mapper
         take them as one batch, answer the uploads and the world."""
         if self.rounds is None:
             return
-        for upload, query in self.rounds.unopened(time.monotonic()):
-            self._keep_outside_rounds(upload, query)
+        self._keep(self.rounds.unopened(time.monotonic()))
         while (closing := self.rounds.next_closing(time.monotonic())) is not None:
             opened, uploads = closing
             self.flown_s = opened.flown_s
             before = self.mapper.version
-            stored = []
-            for upload, query in uploads:
-                rows, duplicates = self.memory.store(upload.measurements)
-                stored.append(rows)
-                _answer(query, self._count((len(rows), duplicates), len(upload.measurements)))
-            if stored:
+            if stored := self._keep(uploads):
                 self.mapper.take(MeasurementBatch.concatenate(stored))
                 self._publish_mapper_events()
             self.rounds.published(opened.round, list(range(before + 1,
@@ -344,14 +348,10 @@ class CloudService:
                                                   serving=self.rounds.serving,
                                                   pending=self.rounds.pending)))
 
-    def _ingest(self, measurements) -> UploadReceipt:
-        if self.mapper is None:
-            counts = self.memory.append(measurements)
-        else:
-            report = self.mapper.ingest(measurements)
-            counts = report.accepted, report.duplicates
-            self._publish_mapper_events()
-        return self._count(counts, len(measurements))
+    def _ingest(self, measurements: MeasurementBatch) -> UploadReceipt:
+        report = self.mapper.ingest(measurements)
+        self._publish_mapper_events()
+        return self._count((report.accepted, report.duplicates), len(measurements))
 
     def _count(self, counts: tuple[int, int], uploaded: int) -> UploadReceipt:
         """The receipt of an upload of ``uploaded`` records, ``counts`` (stored, duplicates)

@@ -16,7 +16,7 @@ import math
 import sqlite3
 import threading
 from collections import Counter
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -103,10 +103,17 @@ class SinrMemory:
 
     def store(self, uploads: Uploads) -> tuple[MeasurementBatch, int]:
         """As ``append``, but returns the rows actually stored (new, valid), in order."""
-        if isinstance(uploads, MeasurementBatch):
-            batch, rejected = self.spec.screen(uploads)
-        else:
-            batch, rejected = self.spec.from_records(uploads)
+        return self.store_each([uploads])[0]
+
+    def store_each(self, uploads: Sequence[Uploads]) -> list[tuple[MeasurementBatch, int]]:
+        """``store`` of each of several uploads, in order, in one transaction: a commit costs
+        as much as storing 50 to 100 rows (BENCHMARKS.md, "Fleets of agent processes"), and a
+        cloud taking many agents' uploads at once pays it once."""
+        if not uploads:
+            return []
+        screened = [self.spec.screen(batch) if isinstance(batch, MeasurementBatch)
+                    else self.spec.from_records(batch) for batch in uploads]
+        rejected = sum((counts for _, counts in screened), Counter())
         with self._lock, self._db:
             if rejected:
                 self._db.executemany(
@@ -114,27 +121,33 @@ class SinrMemory:
                     "ON CONFLICT(reason) DO UPDATE SET count = count + excluded.count",
                     rejected.items(),
                 )
-            if not len(batch):
-                return batch, 0
-            fresh = self._fresh_rows(batch.ids)
-            new = batch if len(fresh) == len(batch) else batch.take(fresh)
-            self._db.executemany(
-                f"INSERT INTO measurements ({_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?)",
-                zip(
-                    new.ids,
-                    new.sources,
-                    new.steps.tolist(),
-                    new.times.tolist(),
-                    new.levels.tolist(),
-                    [row.tobytes() for row in new.features],
-                    [None if math.isnan(db) else db for db in new.sinr_db.tolist()],
-                    strict=True,
-                ),
-            )
-            self._db.execute(
-                "DELETE FROM measurements WHERE seq <= (SELECT MAX(seq) FROM measurements) - ?",
-                (self.capacity,),
-            )
+            stored = [self._insert(batch) for batch, _ in screened]
+            if any(len(new) for new, _ in stored):
+                self._db.execute(
+                    "DELETE FROM measurements WHERE seq <= (SELECT MAX(seq) FROM measurements)"
+                    " - ?", (self.capacity,))
+        return stored
+
+    def _insert(self, batch: MeasurementBatch) -> tuple[MeasurementBatch, int]:
+        """Insert the rows of a screened batch the memory does not hold yet: those rows, and
+        how many it held."""
+        if not len(batch):
+            return batch, 0
+        fresh = self._fresh_rows(batch.ids)
+        new = batch if len(fresh) == len(batch) else batch.take(fresh)
+        self._db.executemany(
+            f"INSERT INTO measurements ({_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?)",
+            zip(
+                new.ids,
+                new.sources,
+                new.steps.tolist(),
+                new.times.tolist(),
+                new.levels.tolist(),
+                [row.tobytes() for row in new.features],
+                [None if math.isnan(db) else db for db in new.sinr_db.tolist()],
+                strict=True,
+            ),
+        )
         return new, len(batch) - len(new)
 
     def _fresh_rows(self, ids: list[str]) -> np.ndarray:

@@ -4,37 +4,77 @@ and the networks the cloud serves (the value network, the SINR map)."""
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterable
+from collections.abc import Sequence
 from typing import ClassVar, Literal
 
 import msgpack
 import numpy as np
 from pydantic import Field, model_validator
 
-from shared.measurements import MEASUREMENT_FIELDS, Measurement
+from shared.measurements import (
+    FEATURES_DTYPE,
+    MEASUREMENT_FIELDS,
+    MeasuredLevel,
+    MeasuredStep,
+    MeasuredTime,
+    MeasurementBatch,
+    MeasurementId,
+    ReportedSinr,
+)
 from shared.wire import Accuracy, Count, Digest, Finite, Message, Positive, UavId
 
 MAX_UPLOAD = 256  # measurements per upload
+FEATURE_BYTES = np.dtype(FEATURES_DTYPE).itemsize
 MAX_WEIGHTS_BYTES = 8 * 2**20
 MapMode = Literal["online", "perfect", "outdated"]
 
 
 class MeasurementUpload(Message):
     """A batch of one UAV's measurements, sent as a query: the cloud answers once it has
-    stored them, and the agent keeps them until then (the cloud screens each record)."""
+    stored them, and the agent keeps them until then (the cloud screens each row).
+
+    Column by column, the features as one block of little-endian float32 (what the agent
+    computed and the cloud stores): as a map of floats per record, decoding an upload cost the
+    cloud more than storing it (BENCHMARKS.md, "Fleets of agent processes")."""
 
     max_bytes: ClassVar[int] = 512 * 1024
     uav: UavId
-    measurements: list[Measurement] = Field(max_length=MAX_UPLOAD)
+    source: MeasurementId  # the UAV's name on its measurements, e.g. "uav-3"
+    ids: list[MeasurementId] = Field(max_length=MAX_UPLOAD)
+    steps: list[MeasuredStep]
+    times: list[MeasuredTime]
+    features: bytes  # len(ids) rows of FEATURES_DTYPE values, row after row
+    levels: list[MeasuredLevel]
+    sinr_db: list[ReportedSinr]
     # A round's upload (the cloud on the lockstep clock), which may hold nothing: the cloud
     # waits for one from every agent the round names.
     round: Count | None = None
 
     @model_validator(mode="after")
-    def _something_or_a_round(self) -> MeasurementUpload:
-        if not self.measurements and self.round is None:
-            raise ValueError("measurements: an upload outside a round holds at least one")
+    def _rows(self) -> MeasurementUpload:
+        rows = len(self.ids)
+        if not rows and self.round is None:
+            raise ValueError("ids: an upload outside a round holds at least one measurement")
+        if any(len(column) != rows for column in (self.steps, self.times, self.levels,
+                                                  self.sinr_db)):
+            raise ValueError(f"steps, times, levels and sinr_db: one value per id ({rows})")
+        if len(self.features) % FEATURE_BYTES or (len(self.features) // FEATURE_BYTES) % max(
+                rows, 1) or bool(rows) != bool(self.features):
+            raise ValueError(f"features: {rows} rows of {FEATURES_DTYPE} values")
         return self
+
+    def newest(self) -> float:
+        """When its newest measurement was taken (0 for none)."""
+        return max(self.times, default=0.0)
+
+    def batch(self) -> MeasurementBatch:
+        """Its rows as arrays, not yet screened (``MeasurementSpec.screen``)."""
+        rows = len(self.ids)
+        features = np.frombuffer(self.features, dtype=FEATURES_DTYPE)
+        features = features.reshape(rows, features.size // max(rows, 1))
+        return MeasurementBatch.of_arrays(
+            self.ids, self.source, self.steps, self.times, features, self.levels,
+            [np.nan if db is None else db for db in self.sinr_db])
 
 
 class UploadReceipt(Message):
@@ -96,10 +136,17 @@ class SinrMap(_Weights):
         return np.frombuffer(self.data, dtype=np.int8).reshape(grid.rows, grid.cols)
 
 
-def encode_upload(uav: int, records: Iterable[tuple], round: int | None = None) -> bytes:
-    """``encode`` of a ``MeasurementUpload`` of ``records``, each a tuple of a ``Measurement``'s
-    field values in ``MEASUREMENT_FIELDS`` order, without a model per record: an agent uploads
-    the records it made itself, and the cloud validates each one on receipt."""
-    measurements = [dict(zip(MEASUREMENT_FIELDS, record, strict=True)) for record in records]
-    return msgpack.packb({"uav": uav, "measurements": measurements, "round": round},
+def encode_upload(uav: int, source: str, records: Sequence[tuple],
+                  round: int | None = None) -> bytes:
+    """``encode`` of the ``MeasurementUpload`` of ``records`` without a model: each record a
+    tuple of a ``Measurement``'s field values in ``MEASUREMENT_FIELDS`` order, its features
+    already ``FEATURES_DTYPE`` bytes (as an agent's outbox holds them). The cloud validates
+    every row on receipt."""
+    if any(record[1] != source for record in records):
+        raise ValueError(f"an upload's measurements are all {source!r}'s")
+    ids, _, steps, times, features, levels, sinr_db = (
+        zip(*records, strict=True) if records else ((),) * len(MEASUREMENT_FIELDS))
+    return msgpack.packb({"uav": uav, "source": source, "ids": list(ids), "steps": list(steps),
+                          "times": list(times), "features": b"".join(features),
+                          "levels": list(levels), "sinr_db": list(sinr_db), "round": round},
                          use_bin_type=True)

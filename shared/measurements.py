@@ -4,7 +4,8 @@ A UAV's measurement is <positions of its K_n nearest GBSs, SINR level> (paper Se
 ``gbs_features`` is the one feature function: training, the agents, the cloud and the
 evaluation all call it, so a map learned anywhere reads the same inputs everywhere.
 
-Uploads travel as ``Measurement`` records; the cloud handles them in bulk as a
+Uploads travel column by column (``shared.cloud_messages.MeasurementUpload``), an agent's
+outbox holds ``Measurement`` records, and the cloud handles them in bulk as a
 ``MeasurementBatch`` of arrays. ``MeasurementSpec.screen`` is the one place where the rules a
 measurement must satisfy (feature length, finite values, known level) are checked.
 """
@@ -15,6 +16,7 @@ import math
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -155,29 +157,41 @@ def scenario_features(scenario: Scenario, xy: np.ndarray) -> np.ndarray:
     return np.concatenate([features, gbs_xy[nearest].astype(np.float32)], axis=-1)
 
 
+# A measurement's fields as they travel, record by record (``Measurement``) or column by column
+# (``shared.cloud_messages.MeasurementUpload``).
+MeasurementId = Annotated[str, Field(min_length=1, max_length=200)]
+MeasuredStep = Annotated[int, Field(ge=0, lt=2**63)]
+MeasuredTime = Annotated[float, Field(allow_inf_nan=False)]  # unix or simulated seconds
+# A level's range depends on the scenario (checked by MeasurementSpec); the int32 bound only
+# keeps absurd values from overflowing the arrays.
+MeasuredLevel = Annotated[int, Field(ge=-(2**31), lt=2**31)]
+# The SINR measured (dB, in the receiver's report steps) where the scenario's UAVs report it
+# (uav.report = "db"); None from a receiver that reports levels only.
+ReportedSinr = Annotated[float, Field(ge=-MAX_REPORTED_DB, le=MAX_REPORTED_DB,
+                                      allow_inf_nan=False)] | None
+
+
 class Measurement(BaseModel):
     """One upload as it travels. Its shape rules depend on the scenario: see MeasurementSpec."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    id: str = Field(min_length=1, max_length=200)  # unique per upload: a resend is a duplicate
-    source: str = Field(min_length=1, max_length=200)  # e.g. "uav-3"
-    step: int = Field(ge=0, lt=2**63)
-    time: float = Field(allow_inf_nan=False)  # unix seconds (or simulated seconds)
+    id: MeasurementId  # unique per upload: a resend is a duplicate
+    source: MeasurementId  # e.g. "uav-3"
+    step: MeasuredStep
+    time: MeasuredTime
     features: list[float]  # gbs_features at the measuring position
-    # Quantized SINR level measured there. Its range depends on the scenario (checked by
-    # MeasurementSpec); the int32 bound only keeps absurd values from overflowing the arrays.
-    level: int = Field(ge=-(2**31), lt=2**31)
-    # The SINR measured there (dB, in the receiver's report steps) where the scenario's UAVs
-    # report it (uav.report = "db"); None from a receiver that reports levels only.
-    sinr_db: float | None = Field(default=None, ge=-MAX_REPORTED_DB, le=MAX_REPORTED_DB,
-                                  allow_inf_nan=False)
+    level: MeasuredLevel  # the quantized SINR level measured there
+    sinr_db: ReportedSinr = None
 
 
 # Measurement's fields in order. An agent holds the measurements it takes as plain tuples in
 # this order (a model per record cost its flight loop more than everything else it does with
 # one) and uploads them as maps with these keys: ``shared.cloud_messages.encode_upload``.
 MEASUREMENT_FIELDS = tuple(Measurement.model_fields)
+# The features as an agent holds and uploads them and the cloud stores them: little-endian
+# float32, in half the size of float64 and never turned into Python floats on the way.
+FEATURES_DTYPE = "<f4"
 
 
 @dataclass(frozen=True)

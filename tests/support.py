@@ -14,11 +14,15 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from cloud_service.change_handling import RetrainConfig
 from cloud_service.process import CloudService
 from shared import bus
+from shared.cloud_messages import MeasurementUpload, encode_upload
 from shared.events import decode_event
 from shared.jammer_messages import JammerCommand, JammerInfo, JammerReply
+from shared.measurements import FEATURES_DTYPE, Measurement
 from shared.process_status import ProcessStatus
 from shared.topics import Topics
 from shared.wire import MessageError, decode
@@ -173,3 +177,12 @@ class Drained:
         for reader in self._readers:
             reader.join(timeout)
         return "".join(self._parts["out"]), "".join(self._parts["err"])
+
+
+def upload_of(uav: int, measurements: list[Measurement],
+              round_number: int | None = None) -> MeasurementUpload:
+    """The upload an agent of UAV ``uav`` sends of ``measurements``, as the cloud decodes it."""
+    records = [(m.id, m.source, m.step, m.time,
+                np.asarray(m.features, dtype=FEATURES_DTYPE).tobytes(), m.level, m.sinr_db)
+               for m in measurements]
+    return decode(MeasurementUpload, encode_upload(uav, f"uav-{uav}", records, round_number))

@@ -20,6 +20,7 @@ from shared.wire import MessageError, decode, encode
 from shared.world_messages import Action, AgentObservation, MeasurementRound
 from shared.zenoh_cli_codec import zenoh_cli_decoder, zenoh_cli_encoder
 from world_sim.core import VectorWorld, episode_seed
+from tests.support import upload_of
 
 
 def test_an_observation_row_survives_the_wire_bit_for_bit(scenario):
@@ -80,16 +81,22 @@ def test_weights_must_match_their_digest_and_rasters_their_grid():
 
 def test_uploads_and_jammer_commands_have_limits():
     record = Measurement(id="a", source="uav-0", step=0, time=1.0, features=[0.0] * 20, level=1)
-    assert decode(MeasurementUpload, encode(MeasurementUpload(uav=0, measurements=[record])))
-    with pytest.raises(MessageError, match="measurements"):
-        decode(MeasurementUpload, msgpack.packb({"uav": 0, "measurements": []}))
-    reported = record.model_copy(update={"sinr_db": -2.5})
-    upload = encode(MeasurementUpload(uav=0, measurements=[record, reported]))
-    assert [m.sinr_db for m in decode(MeasurementUpload, upload).measurements] == [None, -2.5]
+    reported = record.model_copy(update={"id": "b", "sinr_db": -2.5})
+    upload = upload_of(0, [record, reported])
+    assert upload.batch().records() == [record, reported]
+    assert upload.sinr_db == [None, -2.5]
+    columns = msgpack.unpackb(encode(upload))
+    with pytest.raises(MessageError, match="ids"):
+        decode(MeasurementUpload, msgpack.packb({**columns, "ids": [], "steps": [], "times": [],
+                                                 "features": b"", "levels": [], "sinr_db": []}))
+    with pytest.raises(MessageError, match="one value per id"):
+        decode(MeasurementUpload, msgpack.packb({**columns, "levels": [1]}))
+    for features in (columns["features"][:-1], columns["features"][:-4], b""):
+        with pytest.raises(MessageError, match="features"):
+            decode(MeasurementUpload, msgpack.packb({**columns, "features": features}))
     for bad in (float("nan"), 1e9, "loud"):
         with pytest.raises(MessageError, match="sinr_db"):
-            decode(MeasurementUpload, msgpack.packb(
-                {"uav": 0, "measurements": [{**record.model_dump(), "sinr_db": bad}]}))
+            decode(MeasurementUpload, msgpack.packb({**columns, "sinr_db": [None, bad]}))
     round_ = {"round": 1, "episode": 0, "step": 1, "uav": 0, "flown_s": 1.0,
               "measured": [(0.0, 0.0, 1), (1.0, 0.0, 2)]}
     assert decode(MeasurementRound, msgpack.packb({**round_, "measured_db": [-2.5, 0.0]}))
@@ -156,3 +163,8 @@ def test_an_estimate_of_several_jammers_numbers_each_on_the_wire():
                               "its own id")):
         with pytest.raises(MessageError, match=fragment):
             decode(JammerEstimate, msgpack.packb(broken))
+
+
+def test_an_empty_rounds_upload_is_an_empty_batch():
+    upload = upload_of(2, [], round_number=7)
+    assert (upload.round, len(upload.batch()), upload.newest()) == (7, 0, 0.0)

@@ -37,7 +37,7 @@ from shared.world_messages import (
     RoundOpened,
     WorldState,
 )
-from tests.support import Drained, free_endpoint, gone, statuses, wait_until
+from tests.support import Drained, free_endpoint, gone, statuses, upload_of, wait_until
 
 PER_TOPIC = 10_000
 IN_FLIGHT = 100  # queries sent before waiting for their replies
@@ -126,9 +126,8 @@ def templates(scenario) -> dict[str, dict]:
                              outcomes=["success"] * UAVS),
         "jammer_event": JammerChanged(t=time.time(), source="world", jammers=[], episode=0,
                                       step=0),
-        "upload": MeasurementUpload(uav=0, measurements=[Measurement(
-            id="fuzz-0", source="uav-0", step=1, time=time.time(), features=features,
-            level=1)]),
+        "upload": upload_of(0, [Measurement(id="fuzz-0", source="uav-0", step=1,
+                                            time=time.time(), features=features, level=1)]),
         "jammer": JammerCommand(action="show"),
         "measurement_round": MeasurementRound(round=7, episode=0, step=3, uav=0, flown_s=3.0,
                                               measured=[(1.0, 2.0, 1)]),
@@ -147,8 +146,8 @@ def refused_by(kind, payload: bytes, key_uav: int | None = None) -> bool:
         message = decode_event(payload) if kind is None else decode(kind, payload)
     except MessageError:
         return True
-    if isinstance(message, MeasurementUpload) and max(
-            (m.time for m in message.measurements), default=0.0) > time.time() + CLOCK_SKEW_S:
+    if isinstance(message, MeasurementUpload) and (
+            message.newest() > time.time() + CLOCK_SKEW_S):
         return True
     return key_uav is not None and getattr(message, "uav", key_uav) != key_uav
 

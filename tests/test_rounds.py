@@ -5,10 +5,11 @@ from __future__ import annotations
 from cloud_service.rounds import RoundDesk
 from shared.cloud_messages import MeasurementUpload
 from shared.world_messages import RoundOpened
+from tests.support import upload_of
 
 
 def _upload(uav: int, round_number: int) -> MeasurementUpload:
-    return MeasurementUpload(uav=uav, measurements=[], round=round_number)
+    return upload_of(uav, [], round_number)
 
 
 def test_rounds_close_in_order_once_their_uploads_are_in():

@@ -233,6 +233,32 @@ def test_memory_reads_its_db_reports_in_chunks_in_arrival_order(tmp_path, scenar
         np.testing.assert_array_equal(read.sinr_db, taken.sinr_db)
 
 
+def test_uploads_stored_together_land_as_they_would_one_by_one(tmp_path, scenario):
+    """``store_each``, one transaction for several uploads, stores and refuses what storing
+    them in turn would, a repeat within the group included, and keeps the most recent."""
+    spec = MeasurementSpec.of(scenario)
+    batches = [_batch(scenario, 100, seed, time=float(seed)) for seed in range(4)]
+    nan = batches[2].features.copy()
+    nan[:3, 0] = np.nan
+    uploads = [batches[0], batches[1], batches[0].take(np.arange(40, 60)),
+               MeasurementBatch.of_arrays(batches[2].ids, "uav-2", 2, 2.0, nan,
+                                          batches[2].levels),
+               MeasurementBatch.empty(spec.feature_size), batches[3]]
+    with (SinrMemory(tmp_path / "each.sqlite", spec, capacity=250) as each,
+          SinrMemory(tmp_path / "together.sqlite", spec, capacity=250) as together):
+        in_turn = [each.store(upload) for upload in uploads]
+        at_once = together.store_each(uploads)
+        assert [(len(rows), duplicates) for rows, duplicates in at_once] == [
+            (100, 0), (100, 0), (0, 20), (97, 0), (0, 0), (100, 0)]
+        for (rows, duplicates), (rows_once, duplicates_once) in zip(in_turn, at_once,
+                                                                   strict=True):
+            assert (rows.ids, duplicates) == (rows_once.ids, duplicates_once)
+        assert together.count() == each.count() == 250
+        assert together.recent(250).ids == each.recent(250).ids
+        assert together.rejected == each.rejected == {"not_finite": 3}
+        assert together.store_each([]) == []
+
+
 def test_memory_keeps_the_most_recent(tmp_path, scenario):
     with SinrMemory(tmp_path / "m.sqlite", MeasurementSpec.of(scenario), capacity=250) as memory:
         batches = [_batch(scenario, 100, seed) for seed in range(4)]

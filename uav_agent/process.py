@@ -38,7 +38,12 @@ from planning.reference import LookaheadPolicy
 from shared import access, bus
 from shared.cloud_messages import MAX_UPLOAD, SinrMap, ValueWeights
 from shared.events import WeightsRefused
-from shared.measurements import MeasurementSpec, SpotFilter, scenario_features
+from shared.measurements import (
+    FEATURES_DTYPE,
+    MeasurementSpec,
+    SpotFilter,
+    scenario_features,
+)
 from shared.process_status import ProcessStatus
 from shared.scenario import MAX_UAVS, Scenario, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
@@ -48,7 +53,6 @@ from uav_agent.uploads import (
     DEFAULT_BATCH,
     DEFAULT_CAPACITY,
     DEFAULT_MAX_AGE_S,
-    FEATURES_DTYPE,
     Uploader,
     open_outbox,
 )
@@ -207,11 +211,11 @@ class AgentService:
         self.step: int | None = None
         self.upload_every = upload_every
         self.outbox = open_outbox(outbox, outbox_dir, uav, log)
-        self.uploader = Uploader(session, topics.measurements(uav), uav, self.outbox, log,
-                                 upload_every, upload_after)
+        self.source = f"uav-{uav}"
+        self.uploader = Uploader(session, topics.measurements(uav), uav, self.source,
+                                 self.outbox, log, upload_every, upload_after)
         self.spots = SpotFilter(scenario, 1)
         self.spots_row = np.zeros(1, dtype=np.int64)  # this UAV, the filter's only one
-        self.source = f"uav-{uav}"
         # Measurement ids: this process's nonce and a count. Not (episode, step): a restarted
         # world flies its interrupted episode again, and those are new measurements.
         self.nonce = secrets.token_hex(4)

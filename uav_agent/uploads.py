@@ -58,11 +58,8 @@ ROUND_SENDERS = 4  # round uploads awaiting their receipts at once
 REWRITE_AFTER = 4096
 _FRAME = struct.Struct("<II")  # a record's header: payload length, CRC-32 of the payload
 _MEASUREMENT, _MARK = 0, 1  # record kinds
-# An outbox holds a measurement as its file stores it: Measurement's fields in order
-# (MEASUREMENT_FIELDS), the features as little-endian float32 bytes. Those are what the agent
-# computes and the cloud stores, in half the size of msgpack's float64 list, and the flight
-# loop never turns them into Python floats: the sender does, a batch at a time.
-FEATURES_DTYPE = "<f4"
+# An outbox holds a measurement as its file stores it and the upload carries it: Measurement's
+# fields in order (MEASUREMENT_FIELDS), the features as FEATURES_DTYPE bytes.
 _TIME = MEASUREMENT_FIELDS.index("time")
 
 
@@ -95,12 +92,6 @@ def _measurement_frame(number: int, record: tuple) -> bytes:
 
 def _features(data: bytes) -> list[float]:
     return list(struct.unpack(f"<{len(data) // 4}f", data))
-
-
-def _measurement_row(record: tuple) -> tuple:
-    """An outbox's record as Measurement's field values: the features as floats."""
-    ident, source, step, taken_at, features, level, sinr_db = record
-    return ident, source, step, taken_at, _features(features), level, sinr_db
 
 
 def _mark_frame(ledger: Ledger) -> bytes:
@@ -329,9 +320,11 @@ def open_outbox(capacity: int, directory: Path | None, uav: int, log: logging.Lo
 class Uploader:
     """Sends the outbox to the cloud on its own thread, retrying with back-off."""
 
-    def __init__(self, session, key: str, uav: int, outbox: Outbox, log: logging.Logger,
-                 batch: int = DEFAULT_BATCH, max_age: float = DEFAULT_MAX_AGE_S):
-        self.session, self.key, self.uav, self.outbox, self.log = session, key, uav, outbox, log
+    def __init__(self, session, key: str, uav: int, source: str, outbox: Outbox,
+                 log: logging.Logger, batch: int = DEFAULT_BATCH,
+                 max_age: float = DEFAULT_MAX_AGE_S):
+        self.session, self.key, self.outbox, self.log = session, key, outbox, log
+        self.uav, self.source = uav, source
         self.batch, self.max_age = batch, max_age
         self.uploads = 0
         self.failures = 0  # uploads without a receipt (tried again)
@@ -367,7 +360,7 @@ class Uploader:
             self.log.warning("stopped with %d measurements not handed over", left)
 
     def _send(self, batch: list[tuple[int, tuple]], timeout: float) -> bool:
-        upload = encode_upload(self.uav, [_measurement_row(record) for _, record in batch])
+        upload = encode_upload(self.uav, self.source, [record for _, record in batch])
         refused = duplicates = 0
         try:
             receipt = bus.query(self.session, self.key, UploadReceipt, upload, timeout=timeout)
@@ -391,8 +384,7 @@ class Uploader:
         """The cloud on the lockstep clock: a round's records (as the outbox holds them; maybe
         none) in one upload tagged with the round, at once. They pass the outbox: a round
         closes without an upload that does not arrive in time, so one is never sent again."""
-        upload = encode_upload(self.uav, [_measurement_row(record) for record in records],
-                               round_number)
+        upload = encode_upload(self.uav, self.source, records, round_number)
         self._round_senders.submit(self._send_round, upload, len(records), round_number,
                                    timeout)
 
