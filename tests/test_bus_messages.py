@@ -19,8 +19,8 @@ from shared.topics import Topics
 from shared.wire import MessageError, decode, encode
 from shared.world_messages import Action, AgentObservation, MeasurementRound
 from shared.zenoh_cli_codec import zenoh_cli_decoder, zenoh_cli_encoder
-from world_sim.core import VectorWorld, episode_seed
 from tests.support import upload_of
+from world_sim.core import VectorWorld, episode_seed
 
 
 def test_an_observation_row_survives_the_wire_bit_for_bit(scenario):
