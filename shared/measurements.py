@@ -148,10 +148,10 @@ def _nearest_first(distance: np.ndarray, nearby: int) -> np.ndarray:
 def scenario_features(scenario: Scenario, xy: np.ndarray) -> np.ndarray:
     """``gbs_features`` with the scenario's GBS layout, K_n, UAV altitude, GBS height and
     channels, then the nearest GBS's position if the scenario asks for it."""
-    gbs_xy = np.asarray(scenario.gbs.positions, dtype=np.float64)
+    gbs_xy = scenario.gbs.xy
     features, nearest = _nearby_gbs_features(
         xy, gbs_xy, scenario.policy.nearby_gbs, scenario.uav.altitude_m, scenario.gbs.height_m,
-        scenario.gbs.channels)
+        scenario.gbs.channel_of)
     if not scenario.policy.nearest_gbs_position:
         return features
     return np.concatenate([features, gbs_xy[nearest].astype(np.float32)], axis=-1)

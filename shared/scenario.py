@@ -79,6 +79,11 @@ class Area(_Strict):
         return (self.x_max - self.x_min) * (self.y_max - self.y_min)
 
 
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
+
+
 class Gbs(_Strict):
     positions: list[tuple[Finite, Finite]] = Field(min_length=1)
     height_m: Positive
@@ -90,6 +95,17 @@ class Gbs(_Strict):
     # with receivers served on its own channel (frequency reuse). None: all share one channel,
     # as in the paper.
     channels: list[Annotated[int, Field(ge=0, le=1023)]] | None = None
+
+    @cached_property
+    def xy(self) -> np.ndarray:
+        """``positions`` as a read-only (K, 2) array, built once: an agent's every step reads
+        them, and the city's 192 cost more to convert than its features to compute."""
+        return _read_only(np.asarray(self.positions, dtype=np.float64))
+
+    @cached_property
+    def channel_of(self) -> np.ndarray | None:
+        """``channels`` as a read-only array (None where all share one), built once."""
+        return None if self.channels is None else _read_only(np.asarray(self.channels))
 
     @model_validator(mode="after")
     def _one_channel_per_gbs(self) -> Gbs:
