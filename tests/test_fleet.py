@@ -4,6 +4,9 @@ fleet's observation gives."""
 
 from __future__ import annotations
 
+import logging
+from unittest import mock
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -21,8 +24,9 @@ from shared.radio import RadioModel
 from shared.shipped import VALUE_NETS
 from shared.wire import decode, encode
 from shared.world_messages import AgentObservation, WorldState
+from world_sim import process as world_process
 from world_sim.core import VectorWorld, episode_seed
-from world_sim.process import observation_sent
+from world_sim.process import WorldConfig, WorldService, observation_sent
 
 
 def sent_sizes(scenario, uavs: int, trimmed: bool = True) -> list[int]:
@@ -171,3 +175,32 @@ def test_fifty_uavs_make_one_progress_line_one_status_line_and_one_summary_line(
     assert "\n" not in line and line.startswith("agents            50  live (1 not answering)")
     assert ("value net v1, map v2..v3, 490 decisions, decision p99 worst 501 us (agent-5), "
             "furthest behind agent-17 at episode 3 step 39") in line
+
+
+def test_an_episodes_missed_deadlines_are_named_by_step_and_uav(scenario, caplog):
+    """A live agent whose action is late costs its UAV its command, and the episode's warning
+    names each step with a miss and whose; a UAV without an agent is no miss."""
+    log = logging.getLogger("test-world")
+    with mock.patch.multiple(world_process.bus, reliable_publisher=mock.DEFAULT,
+                             recoverable_publisher=mock.DEFAULT, subscribe=mock.DEFAULT,
+                             serve_status=mock.DEFAULT, declare_alive=mock.DEFAULT):
+        world = WorldService(mock.MagicMock(), world_process.Topics("t"), scenario,
+                             WorldConfig(uavs=4), (), log)
+    world.world.reset([0], [episode_seed(0, 3)])
+    world.episode = 3
+    for uav in (0, 2, 3):
+        world.mailbox.on_presence(mock.Mock(key_expr=f"t/alive/agent/{uav}",
+                                            kind=world_process.zenoh.SampleKind.PUT))
+    late = {1: world_process.Action(episode=3, step=0, uav=1, speed=1.0, heading=0.0),
+            3: world_process.Action(episode=3, step=0, uav=3, speed=1.0, heading=0.0)}
+    commands = world._commands(late, {0, 1, 2, 3})
+    assert commands[0][0, 1] == commands[0][0, 3] == 1.0
+    assert commands[0][0, 0] == commands[0][0, 2] == 0.0  # still at the start
+    world.world.step(*commands)
+    world._commands({}, {1, 2})
+    with caplog.at_level(logging.WARNING, logger="test-world"):
+        world._log_misses()
+        world._log_misses()  # said once
+    assert (world.missed, world.unattended) == (3, 1)
+    assert caplog.messages == [
+        "episode 3: 3 missed deadlines, at steps 0 (UAVs 0, 2); 1 (UAV 2)"]

@@ -64,6 +64,7 @@ from world_sim.jammers import swapping_jammers
 ROLE = "world"
 JOIN_HOLD_S = 10.0  # an id handed out is kept for its agent this long, waiting for its token
 OUTCOMES_KEPT = 1000  # episodes whose outcomes a late or reconnected subscriber can fetch
+MISSES_NAMED = 10  # steps with missed deadlines an episode's warning names
 
 
 @dataclass(frozen=True)
@@ -197,6 +198,7 @@ class WorldService:
         self.steps = 0
         self.stepping_seconds = 0.0
         self.missed = 0  # live agent, no action in time
+        self.missed_at: dict[int, list[int]] = {}  # this episode's misses: step -> UAVs
         self.unattended = 0  # no live agent for an active UAV
         self.finished = False
         self.observation_pubs = [bus.reliable_publisher(session, topics.observation(uav), True)
@@ -271,6 +273,7 @@ class WorldService:
         while not stop.is_set() and self.episode != last and not out_of_time():
             if self._fly_episode(stop, out_of_time):
                 self.episode += 1
+        self._log_misses()  # of an episode cut short
         self.finished = True
         self._publish_event(RunFinished(
             t=time.time(), source=ROLE, episodes=self.episode - config.first_episode,
@@ -321,6 +324,7 @@ class WorldService:
                 return False
             self.stepping_seconds += time.monotonic() - started
             if result.env_done[0]:
+                self._log_misses()
                 self._publish_state()
                 self.outcomes_pub.put(encode(UavOutcomes(
                     t=time.time(), source=ROLE, episode=self.episode, seed=seed,
@@ -328,6 +332,19 @@ class WorldService:
                 return True
             if out_of_time():
                 return False
+
+    def _log_misses(self) -> None:
+        """Name the steps of the episode just flown whose actions some live agent did not
+        send in time, and those agents' UAVs: when and where a run missed deadlines."""
+        if self.missed_at:
+            steps = sorted(self.missed_at)
+            self.log.warning("episode %d: %d missed deadlines, at steps %s", self.episode,
+                             sum(len(uavs) for uavs in self.missed_at.values()), "; ".join(
+                                 f"{step} ({_uavs(self.missed_at[step])})"
+                                 for step in steps[:MISSES_NAMED]) + (
+                                     f" and {len(steps) - MISSES_NAMED} more"
+                                     if len(steps) > MISSES_NAMED else ""))
+        self.missed_at = {}
 
     def _scheduled_jammers(self) -> JammersInForce:
         """The jammers the run's schedule sets for this episode, the first of a period."""
@@ -431,11 +448,16 @@ class WorldService:
             if action is None:
                 if uav in live:
                     self.missed += 1
+                    self.missed_at.setdefault(int(w.steps[0]), []).append(uav)
                 else:
                     self.unattended += 1
                 continue
             speed[0, uav], heading[0, uav] = action.speed, action.heading
         return speed, heading
+
+
+def _uavs(uavs: list[int]) -> str:
+    return f"UAV{'s' if len(uavs) > 1 else ''} {', '.join(map(str, sorted(uavs)))}"
 
 
 # -- process shell ------------------------------------------------------------------------------
