@@ -1,6 +1,7 @@
 """The agents' outbox: what appending a measurement costs the flight loop, in memory and
 durable (a file per UAV, as ``jamnav up`` gives its agents), and the agents' decision time in
-``jamnav up`` runs with either."""
+``jamnav up`` runs with either. And what an upload costs per measurement: the agent's encoding,
+the cloud's decoding, and its storing, one upload or four to a transaction."""
 
 from __future__ import annotations
 
@@ -8,18 +9,24 @@ import io
 import logging
 import socket
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
 
 from benchmarks.common import Figure, best_rate
+from cloud_service.sinr_memory import SinrMemory
 from jamnav.supervisor import Supervisor, UpConfig
-from shared.measurements import FEATURES_DTYPE, scenario_features
-from shared.scenario import load_scenario
+from shared.cloud_messages import MeasurementUpload, encode_upload
+from shared.measurements import FEATURES_DTYPE, MeasurementSpec, scenario_features
+from shared.scenario import Scenario, load_scenario
+from shared.wire import decode
 from uav_agent.uploads import DEFAULT_BATCH, DEFAULT_CAPACITY, Outbox, open_outbox
 
-ROUNDS = 2  # runs of each outbox, alternated; each figure keeps its better run
+ROUNDS = 2  # runs of each outbox (and of the upload figures), alternated; each figure keeps
+# its better run
 EPISODES = 30
+UPLOADS = 200  # uploads timed per figure: 12,800 measurements
 APPEND_TARGET_US = 10  # a step's 10 reports then cost a tenth of the 1 ms decision target
 
 
@@ -34,6 +41,37 @@ def _append_rate(outbox: Outbox, step: list[tuple]) -> float:
         return 64 * len(step)
 
     return best_rate(work)
+
+
+def upload_figures(scenario: Scenario, directory: Path) -> list[Figure]:
+    """Per measurement, over UPLOADS uploads of DEFAULT_BATCH new measurements: the agent's
+    encoding, the cloud's decoding, and its storing, one upload or four to a transaction
+    (best of ROUNDS, on fresh memories)."""
+    rng = np.random.default_rng(1)
+    features = scenario_features(scenario, rng.uniform(-40, 40, (DEFAULT_BATCH, 2))).astype(
+        FEATURES_DTYPE, copy=False)
+    uploads = [[(f"3-0123abcd-{n * DEFAULT_BATCH + i}", "uav-3", 120, 1.8e9, row.tobytes(), 1,
+                 None) for i, row in enumerate(features)] for n in range(UPLOADS)]
+    spec = MeasurementSpec.of(scenario)
+    best: dict[str, float] = {}
+    for attempt in range(ROUNDS):
+        started = time.perf_counter()
+        payloads = [encode_upload(3, "uav-3", records) for records in uploads]
+        encoded = time.perf_counter()
+        batches = [decode(MeasurementUpload, payload).batch() for payload in payloads]
+        decoded = time.perf_counter()
+        seconds = {"the agent encodes": encoded - started, "the cloud decodes": decoded - encoded}
+        for together in (1, 4):
+            with SinrMemory(directory / f"memory-{attempt}-{together}.sqlite", spec) as memory:
+                started = time.perf_counter()
+                for first in range(0, UPLOADS, together):
+                    memory.store_each(batches[first:first + together])
+                seconds[f"the cloud stores, {together} upload{'s' * (together > 1)} a "
+                        "transaction"] = time.perf_counter() - started
+        for what, elapsed in seconds.items():
+            best[what] = min(best.get(what, np.inf), elapsed / (UPLOADS * DEFAULT_BATCH))
+    return [Figure(f"upload of {DEFAULT_BATCH}: {what}, per measurement", value * 1e6, "us")
+            for what, value in best.items()]
 
 
 def _up(run_dir: Path, durable: bool) -> dict:
@@ -53,6 +91,7 @@ def run() -> list[Figure]:
             for i, row in enumerate(features)]
     figures = []
     with tempfile.TemporaryDirectory() as tmp:
+        figures += upload_figures(scenario, Path(tmp))
         for label, directory in (("memory", None), ("durable", Path(tmp))):
             outbox = open_outbox(DEFAULT_CAPACITY, directory, 3, logging.getLogger("bench"))
             figures.append(Figure(f"outbox append per measurement, {label}",

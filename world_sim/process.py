@@ -337,13 +337,10 @@ class WorldService:
         """Name the steps of the episode just flown whose actions some live agent did not
         send in time, and those agents' UAVs: when and where a run missed deadlines."""
         if self.missed_at:
-            steps = sorted(self.missed_at)
-            self.log.warning("episode %d: %d missed deadlines, at steps %s", self.episode,
-                             sum(len(uavs) for uavs in self.missed_at.values()), "; ".join(
-                                 f"{step} ({_uavs(self.missed_at[step])})"
-                                 for step in steps[:MISSES_NAMED]) + (
-                                     f" and {len(steps) - MISSES_NAMED} more"
-                                     if len(steps) > MISSES_NAMED else ""))
+            missed = sum(map(len, self.missed_at.values()))
+            self.log.warning("episode %d: %d missed deadline%s, at step%s %s", self.episode,
+                             missed, "s" * (missed > 1), "s" * (len(self.missed_at) > 1),
+                             _misses(self.missed_at))
         self.missed_at = {}
 
     def _scheduled_jammers(self) -> JammersInForce:
@@ -456,8 +453,14 @@ class WorldService:
         return speed, heading
 
 
-def _uavs(uavs: list[int]) -> str:
-    return f"UAV{'s' if len(uavs) > 1 else ''} {', '.join(map(str, sorted(uavs)))}"
+def _misses(missed_at: dict[int, list[int]]) -> str:
+    """"3 (UAVs 0, 2); 7 (UAV 1)": the first MISSES_NAMED steps with a miss, and whose."""
+    steps = sorted(missed_at)
+    named = "; ".join(f"{step} (UAV{'s' if len(missed_at[step]) > 1 else ''} "
+                      f"{', '.join(map(str, sorted(missed_at[step])))})"
+                      for step in steps[:MISSES_NAMED])
+    more = len(steps) - MISSES_NAMED
+    return named + (f" and {more} more" if more > 0 else "")
 
 
 # -- process shell ------------------------------------------------------------------------------
