@@ -14,11 +14,11 @@ from pydantic import Field, model_validator
 from shared.measurements import (
     FEATURES_DTYPE,
     MEASUREMENT_FIELDS,
+    Label,
     MeasuredLevel,
     MeasuredStep,
     MeasuredTime,
     MeasurementBatch,
-    MeasurementId,
     ReportedSinr,
 )
 from shared.wire import Accuracy, Count, Digest, Finite, Message, Positive, UavId
@@ -39,8 +39,8 @@ class MeasurementUpload(Message):
 
     max_bytes: ClassVar[int] = 512 * 1024
     uav: UavId
-    source: MeasurementId  # the UAV's name on its measurements, e.g. "uav-3"
-    ids: list[MeasurementId] = Field(max_length=MAX_UPLOAD)
+    source: Label  # the UAV's name on its measurements, e.g. "uav-3"
+    ids: list[Label] = Field(max_length=MAX_UPLOAD)
     steps: list[MeasuredStep]
     times: list[MeasuredTime]
     features: bytes  # len(ids) rows of FEATURES_DTYPE values, row after row

@@ -159,7 +159,7 @@ def scenario_features(scenario: Scenario, xy: np.ndarray) -> np.ndarray:
 
 # A measurement's fields as they travel, record by record (``Measurement``) or column by column
 # (``shared.cloud_messages.MeasurementUpload``).
-MeasurementId = Annotated[str, Field(min_length=1, max_length=200)]
+Label = Annotated[str, Field(min_length=1, max_length=200)]  # an id, or whose it is
 MeasuredStep = Annotated[int, Field(ge=0, lt=2**63)]
 MeasuredTime = Annotated[float, Field(allow_inf_nan=False)]  # unix or simulated seconds
 # A level's range depends on the scenario (checked by MeasurementSpec); the int32 bound only
@@ -172,12 +172,14 @@ ReportedSinr = Annotated[float, Field(ge=-MAX_REPORTED_DB, le=MAX_REPORTED_DB,
 
 
 class Measurement(BaseModel):
-    """One upload as it travels. Its shape rules depend on the scenario: see MeasurementSpec."""
+    """One measurement as a record: how an agent's outbox holds it (``MEASUREMENT_FIELDS``)
+    and ``MeasurementBatch.records`` gives it. Its shape rules depend on the scenario: see
+    MeasurementSpec."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    id: MeasurementId  # unique per upload: a resend is a duplicate
-    source: MeasurementId  # e.g. "uav-3"
+    id: Label  # unique per upload: a resend is a duplicate
+    source: Label  # e.g. "uav-3"
     step: MeasuredStep
     time: MeasuredTime
     features: list[float]  # gbs_features at the measuring position
@@ -187,7 +189,7 @@ class Measurement(BaseModel):
 
 # Measurement's fields in order. An agent holds the measurements it takes as plain tuples in
 # this order (a model per record cost its flight loop more than everything else it does with
-# one) and uploads them as maps with these keys: ``shared.cloud_messages.encode_upload``.
+# one) and uploads them column by column: ``shared.cloud_messages.encode_upload``.
 MEASUREMENT_FIELDS = tuple(Measurement.model_fields)
 # The features as an agent holds and uploads them and the cloud stores them: little-endian
 # float32, in half the size of float64 and never turned into Python floats on the way.

@@ -454,7 +454,7 @@ class WorldService:
 
 
 def _misses(missed_at: dict[int, list[int]]) -> str:
-    """"3 (UAVs 0, 2); 7 (UAV 1)": the first MISSES_NAMED steps with a miss, and whose."""
+    """The first MISSES_NAMED steps with a miss, and whose: ``3 (UAVs 0, 2); 7 (UAV 1)``."""
     steps = sorted(missed_at)
     named = "; ".join(f"{step} (UAV{'s' if len(missed_at[step]) > 1 else ''} "
                       f"{', '.join(map(str, sorted(missed_at[step])))})"
