@@ -19,7 +19,7 @@ import sys
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import nullcontext
 from typing import Any, Literal, NamedTuple, TypeVar
 
@@ -181,16 +181,19 @@ def recovering_subscriber(session: zenoh.Session, key: str,
 MATCH_SETTLE_S = 0.05
 
 
-def wait_matching(publisher: zenoh.Publisher, timeout: float) -> bool:
-    """Wait until someone subscribes to ``publisher``'s key, and a moment more: a put sent
-    before the subscription has reached us may be lost."""
+def wait_matching(publishers: Sequence[zenoh.Publisher], timeout: float) -> list[bool]:
+    """Wait until someone subscribes to each of ``publishers``' keys, and a moment more, once
+    for all of them: a put sent before the subscription has reached us may be lost. Which
+    ones matched within ``timeout``."""
     deadline = time.monotonic() + timeout
-    while not publisher.matching_status.matching:
+    unmatched = set(range(len(publishers)))
+    while unmatched := {i for i in unmatched if not publishers[i].matching_status.matching}:
         if time.monotonic() >= deadline:
-            return False
+            break
         time.sleep(0.002)
-    time.sleep(MATCH_SETTLE_S)
-    return True
+    if len(unmatched) < len(publishers):
+        time.sleep(MATCH_SETTLE_S)
+    return [i not in unmatched for i in range(len(publishers))]
 
 
 def declare_alive(session: zenoh.Session, topics: Topics, role: str, ident: int | str

@@ -204,3 +204,41 @@ def test_an_episodes_missed_deadlines_are_named_by_step_and_uav(scenario, caplog
     assert (world.missed, world.unattended) == (3, 1)
     assert caplog.messages == [
         "episode 3: 3 missed deadlines, at steps 0 (UAVs 0, 2); 1 (UAV 2)"]
+
+
+class _Publisher:
+    """A publisher whose subscriber shows up after ``polls`` looks (never, for None)."""
+
+    def __init__(self, polls: int | None):
+        self.polls = polls
+
+    @property
+    def matching_status(self):
+        if self.polls is not None:
+            self.polls -= 1
+        return mock.Mock(matching=self.polls is not None and self.polls < 0)
+
+
+def test_the_world_waits_for_its_joined_agents_subscriptions_together():
+    """Each publisher is watched until its subscriber shows up or the time is out, and the
+    moment a put needs after a match is waited once for all: a hundred agents joining at once
+    cost the first step 5 s, a twentieth of a second each."""
+    clock = [0.0]
+    slept = []
+
+    def sleep(seconds: float) -> None:
+        slept.append(seconds)
+        clock[0] += seconds
+
+    with (mock.patch.object(world_process.bus.time, "monotonic", lambda: clock[0]),
+          mock.patch.object(world_process.bus.time, "sleep", sleep)):
+        matched = world_process.bus.wait_matching(
+            [_Publisher(0), _Publisher(3), _Publisher(None), _Publisher(1)], 0.5)
+        assert matched == [True, True, False, True]
+        assert slept.count(world_process.bus.MATCH_SETTLE_S) == 1
+        assert 0.5 <= clock[0] <= 0.5 + world_process.bus.MATCH_SETTLE_S + 0.01
+        slept.clear()
+        assert world_process.bus.wait_matching([_Publisher(None)], 0.1) == [False]
+        assert world_process.bus.MATCH_SETTLE_S not in slept
+        slept.clear()
+        assert world_process.bus.wait_matching([], 1.0) == [] and slept == []

@@ -386,11 +386,12 @@ class WorldService:
 
     def _publish_step(self, active: set[int]) -> None:
         w = self.world
-        for uav in self.mailbox.take_joined():
-            # The agent subscribed before declaring its token; make sure that subscription is
-            # known here, or its first observation could be lost.
-            if uav < self.config.uavs and not bus.wait_matching(self.observation_pubs[uav], 2.0):
-                self.log.warning("agent %d is live but not subscribed", uav)
+        # A joined agent subscribed before declaring its token; make sure that subscription
+        # is known here, or its first observation could be lost.
+        joined = sorted(uav for uav in self.mailbox.take_joined() if uav < self.config.uavs)
+        matched = bus.wait_matching([self.observation_pubs[uav] for uav in joined], 2.0)
+        for uav in (uav for uav, known in zip(joined, matched, strict=True) if not known):
+            self.log.warning("agent %d is live but not subscribed", uav)
         observation, relevant = observation_sent(w)
         flown = self.rounds.flown_at(self.round_base + self.steps)
         for uav in sorted(active):
