@@ -1,7 +1,8 @@
-"""The planner's compiled core (planning/_lookahead.pyx, the lookahead; planning/_routes.pyx, the
-route fields; planning/_regression.pyx, the value network's training step); the rest of the
-build is in pyproject.toml. Portable flags only: a wheel built on one x86_64 CPU must run on any
-other (planning/_dense.h picks wider vector code when the module loads)."""
+"""The compiled core (planning/_lookahead.pyx, the lookahead; planning/_routes.pyx, the route
+fields; planning/_regression.pyx, the networks' training steps; planning/_evidence.pyx, the sums
+of the cloud's jammer search); the rest of the build is in pyproject.toml. Portable flags only:
+a wheel built on one x86_64 CPU must run on any other (planning/_dense.h picks wider vector code
+when the module loads)."""
 
 import importlib.util
 from pathlib import Path
@@ -34,4 +35,5 @@ setup(ext_modules=cythonize([
     compiled("_lookahead", libraries=["mvec"]),  # glibc's vector math (planning/_vector_math.h)
     compiled("_routes"),
     compiled("_regression"),
+    compiled("_evidence"),
 ], language_level=3))

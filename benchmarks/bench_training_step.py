@@ -1,5 +1,5 @@
 """Training's mini-batch step (one Adam step on 200 states of the extended network): torch's
-step, the reference, against the compiled core's (``cloud_service.value_regression``), on the
+step, the reference, against the compiled core's (``cloud_service.adam_step``), on the
 same batches from the same start, in one run; and how far apart the two networks are after
 300 steps."""
 
@@ -12,10 +12,10 @@ import numpy as np
 import torch
 
 from benchmarks.common import Figure
+from cloud_service.adam_step import CompiledStep, torch_step
 from cloud_service.torch_networks import TorchValueNetwork
 from cloud_service.training_config import TrainConfig
 from cloud_service.value_learner import adam
-from cloud_service.value_regression import CompiledRegression, torch_regression
 from planning.features import EXTENDED_METHOD, joint_state_size
 from shared.scenario import load_scenario
 
@@ -33,8 +33,8 @@ def run() -> list[Figure]:
     start.standardize.fit(torch.from_numpy(states))
     nets = {name: copy.deepcopy(start) for name in ("torch", "compiled")}
     config = TrainConfig(method="extended")
-    steps = {"torch": torch_regression(nets["torch"], adam(nets["torch"], config)),
-             "compiled": CompiledRegression(nets["compiled"], adam(nets["compiled"], config))}
+    steps = {"torch": torch_step(nets["torch"], adam(nets["torch"], config)),
+             "compiled": CompiledStep(nets["compiled"], adam(nets["compiled"], config))}
     batches = [rng.integers(0, len(values), BATCH) for _ in range(STEPS)]
     for batch in batches:
         for step in steps.values():

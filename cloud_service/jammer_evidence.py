@@ -27,6 +27,7 @@ import numpy as np
 
 from cloud_service.no_jammer_belief import SinrBelief
 from cloud_service.report_likelihood import ReportTables
+from planning.compiled import chosen_planner, compiled_module
 from shared.radio import RadioModel
 from shared.scenario import Scenario
 
@@ -115,25 +116,36 @@ class JammerEvidence:
     def ratios_db(self, positions: np.ndarray, power_dbw: float | np.ndarray) -> np.ndarray:
         """r of a jammer at each of ``positions`` (H, 2) with effective power ``power_dbw``
         at every measurement: (H, n) dB."""
-        offset = positions[:, None, :] - self.xy
-        slant_sq = (offset * offset).sum(-1) + self.gap_m**2
+        dx = positions[:, 0, None] - self.xy[:, 0]
+        dy = positions[:, 1, None] - self.xy[:, 1]
+        slant_sq = dx * dx + dy * dy + self.gap_m**2
         return (np.asarray(power_dbw)[..., None] + 10.0 * math.log10(self.gap_m)
                 - self.slope_db * np.log10(slant_sq) - self.interference_db)
 
     def log_likelihood_ratios(self, positions: np.ndarray, powers_dbw: np.ndarray) -> np.ndarray:
         """Log-likelihood of a jammer at each of ``positions`` (H, 2) with each effective
         power ``powers_dbw`` (P,), less that of no jammer: shape (H, P). Powers are read to
-        the table's step and may span at most the ``power_span_db`` the tables were made for."""
+        the table's step and may span at most the ``power_span_db`` the tables were made for.
+        Summed by the compiled core unless ``JAMNAV_PLANNER=reference``, whose numpy gather is
+        the reference."""
         power_steps = np.rint((powers_dbw - powers_dbw.min()) / _RATIO_STEP_DB).astype(np.int32)
         lowest_at = self.ratio_low_db - powers_dbw.min()  # path gain read at column 0
-        out = np.empty((len(positions), len(powers_dbw)))
-        per_block = max(1, _BLOCK_ELEMENTS // (len(powers_dbw) * len(self.xy)))
+        out = np.zeros((len(positions), len(powers_dbw)))
+        compiled = chosen_planner() == "compiled"
+        # The numpy gather's temporaries hold every power; the compiled sums, none.
+        per_block = max(1, _BLOCK_ELEMENTS // ((1 if compiled else len(powers_dbw))
+                                               * len(self.xy)))
         for start in range(0, len(positions), per_block):
             block = positions[start : start + per_block]
             gain_db = self.ratios_db(block, 0.0)
             # Beyond the tables the likelihood no longer changes with r: clipping is exact.
-            lowest = np.clip(np.rint((gain_db - lowest_at) / _RATIO_STEP_DB),
-                             0, self.ratio_count - 1 - power_steps.max()).astype(np.int32)
-            index = (lowest + self.row_start)[:, None, :] + power_steps[:, None]
-            out[start : start + len(block)] = self.table[index].sum(axis=-1)
+            first_entry = np.clip(np.rint((gain_db - lowest_at) / _RATIO_STEP_DB), 0,
+                                  self.ratio_count - 1 - power_steps.max()).astype(np.int32)
+            first_entry += self.row_start
+            sums = out[start : start + len(block)]
+            if compiled:
+                compiled_module("_evidence").add_table_entries(
+                    np.ascontiguousarray(first_entry.T), power_steps, self.table, sums)
+            else:
+                sums[:] = self.table[first_entry[:, None, :] + power_steps[:, None]].sum(axis=-1)
         return out - self.no_jammer

@@ -5,14 +5,15 @@ imports it on first use, so that it serves weights without waiting for torch to 
 
 from __future__ import annotations
 
+import math
 import time as wall
 from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple
 
 import numpy as np
 import torch
-from torch.nn import functional
 
+from cloud_service.adam_step import adam_step
 from cloud_service.simulated_measurements import (
     measurements_at,
     simulated_measurements,
@@ -90,21 +91,20 @@ def train_sinr_map(
     generator = torch.Generator().manual_seed(seed)
     (train_x, train_y), (test_x, test_y) = _held_out(features, levels, holdout, generator)
     module = _module_to_train(network, train_x, level_count, seed)
+    test_x, test_y = test_x.numpy(), test_y.numpy()
     trained = module.inference()  # reads the module's memory: it follows every step
     optimizer = torch.optim.Adam(module.parameters(), lr=LEARNING_RATE, weight_decay=L2)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps, eta_min=FINAL_LR)
+    step, rates = adam_step(module, optimizer), cosine_rates(steps)
+    train_x, train_y = train_x.numpy(), train_y.numpy()
     batches = _mini_batches(len(train_y), generator)
     accuracy, done = float("nan"), 0
     while done < steps:
-        rows = next(batches)
-        loss = functional.cross_entropy(module(train_x[rows]), train_y[rows])
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        schedule.step()
+        rows = next(batches).numpy()
+        optimizer.param_groups[0]["lr"] = next(rates)
+        step(train_x[rows], train_y[rows])
         done += 1
         if done % _EVAL_EVERY == 0 or done == steps:
-            accuracy = accuracy_of(trained, test_x.numpy(), test_y.numpy())
+            accuracy = accuracy_of(trained, test_x, test_y)
             if progress is not None:
                 progress(done, accuracy)
             if target_accuracy is not None and accuracy >= target_accuracy:
@@ -114,6 +114,18 @@ def train_sinr_map(
         if stop is not None and stop():
             break
     return TrainResult(trained, accuracy, done, wall.perf_counter() - started)
+
+
+def cosine_rates(steps: int) -> Iterator[float]:
+    """The learning rate of each of ``steps`` steps in turn: from the paper's rate down to
+    FINAL_LR along half a cosine, by the recurrence torch's scheduler (CosineAnnealingLR)
+    follows rather than the closed form, so that a map fitted by torch's step is, bit for bit,
+    the one it gave before the compiled step was."""
+    rate = LEARNING_RATE
+    for done in range(1, steps + 1):
+        yield rate
+        rate = ((1 + math.cos(math.pi * done / steps))
+                / (1 + math.cos(math.pi * (done - 1) / steps)) * (rate - FINAL_LR) + FINAL_LR)
 
 
 def _held_out(features: torch.Tensor, levels: torch.Tensor, holdout: float,

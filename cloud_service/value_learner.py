@@ -11,9 +11,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from cloud_service.adam_step import AdamStep, adam_step
 from cloud_service.torch_networks import TorchValueNetwork
 from cloud_service.training_config import TrainConfig
-from cloud_service.value_regression import RegressionStep, regression
 from planning.features import METHODS, joint_state_size
 from shared.scenario import Scenario
 
@@ -71,7 +71,7 @@ class Learner:
     best: TorchValueNetwork  # the best-validated net so far
     optimizer: torch.optim.Adam
     memory: ReplayMemory
-    step: RegressionStep | None = None  # the mini-batch step, kept from episode to episode
+    step: AdamStep | None = None  # the mini-batch step, kept from episode to episode
 
     @classmethod
     def fresh(cls, scenario: Scenario, config: TrainConfig) -> Learner:
@@ -107,7 +107,7 @@ class Learner:
         """The mini-batch steps after an episode, once D holds a batch."""
         if self.memory.size < config.batch_size:
             return
-        self.step = regression(self.net, self.optimizer, self.step)
+        self.step = adam_step(self.net, self.optimizer, self.step)
         for _ in range(config.updates_per_episode):
             self.step(*self.memory.sample(rng, config.batch_size))
 
@@ -128,7 +128,7 @@ def fit_value_net(
 ) -> float:
     """Line 1 of Algorithm 1: regress the network on state-value pairs; returns the last MSE."""
     net.standardize.fit(torch.from_numpy(states).to(torch.device(config.device)))
-    step = regression(net, adam(net, config))
+    step = adam_step(net, adam(net, config))
     loss_value = math.nan
     for _ in range(epochs):
         order = rng.permutation(len(values))

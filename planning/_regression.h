@@ -1,6 +1,7 @@
-/* One Adam step of the value network on the mean squared error of a batch: the forward with its
- * activations kept, the backward, and torch's Adam (L2 weight decay added to the gradient)
- * applied to each layer as soon as its gradient is whole. torch's own step is the reference
+/* One Adam step of a network on a batch: the value network on the mean squared error of its
+ * values, the SINR map on the cross-entropy of its levels. The forward with its activations
+ * kept, the backward, and torch's Adam (L2 weight decay added to the gradient) applied to each
+ * layer as soon as its gradient is whole. torch's own step is the reference
  * (cloud_service.value_learner); this one spares its fixed cost per operation, which is most of
  * a step on a network this small.
  *
@@ -11,6 +12,7 @@
 #define PLANNING_REGRESSION_H
 
 #include <math.h>
+#include <stdint.h>
 #include <string.h>
 
 #include "_dense.h"
@@ -112,18 +114,71 @@ static void regression_back_layer(const regression_layer *layer, const float *re
     }
 }
 
-/* One step on ``batch`` states (row-major, batch x features) and their target values; returns
- * the batch's mean squared error before the step. ``act`` holds the sum of the widths times the
- * padded batch, ``grads`` twice the widest layer times it, ``param_grad`` the largest layer's
- * weights and biases. */
-static double regression_step(const regression_layer *layers, int count, const float *mean,
-                              const float *std, float value_scale, const float *states,
-                              const float *targets, long batch, float *act, float *grads,
-                              float *param_grad, const adam_settings *adam)
+/* What the step fits the network's output to: a value per state (``targets``, the output scaled
+ * by ``value_scale`` through tanh, mean squared error) or a class per state (``labels``, the
+ * outputs read as logits, mean cross-entropy); ``labels`` NULL for the first. */
+typedef struct {
+    const float *targets;
+    float value_scale;
+    const int64_t *labels; /* each in [0, the output layer's width) */
+} regression_head;
+
+/* d/dz of the batch's mean squared error of scale tanh z against the targets, zero on the
+ * padding; returns that mean. */
+static double regression_value_grad(const float *out, const regression_head *head, long batch,
+                                    long padded, float *grad)
 {
-    const long padded = (batch + DENSE_BLOCK - 1) / DENSE_BLOCK * DENSE_BLOCK;
+    double squares = 0.0;
+    for (long s = 0; s < padded; s++) {
+        if (s >= batch) {
+            grad[s] = 0.0f;
+            continue;
+        }
+        const float t = tanhf(out[s]);
+        const float error = head->value_scale * t - head->targets[s];
+        squares += (double)error * error;
+        grad[s] = 2.0f * error / (float)batch * head->value_scale * (1.0f - t * t);
+    }
+    return squares / (double)batch;
+}
+
+/* d/dz of the batch's mean cross-entropy of the softmax of the ``classes`` logits against the
+ * labels: (softmax - one-hot) / batch, zero on the padding; returns that mean. Each state's
+ * softmax subtracts its largest logit first, as torch's log-softmax does. */
+static double regression_level_grad(const float *out, int classes, const regression_head *head,
+                                    long batch, long padded, float *grad)
+{
+    double losses = 0.0;
+    for (long s = 0; s < padded; s++) {
+        if (s >= batch) {
+            for (int k = 0; k < classes; k++)
+                grad[k * padded + s] = 0.0f;
+            continue;
+        }
+        float largest = out[s];
+        for (int k = 1; k < classes; k++)
+            largest = fmaxf(largest, out[k * padded + s]);
+        float total = 0.0f;
+        for (int k = 0; k < classes; k++) {
+            const float e = expf(out[k * padded + s] - largest);
+            grad[k * padded + s] = e;
+            total += e;
+        }
+        const long label = head->labels[s];
+        losses += (double)logf(total) + largest - out[label * padded + s];
+        for (int k = 0; k < classes; k++)
+            grad[k * padded + s] = (grad[k * padded + s] / total - (k == label)) / (float)batch;
+    }
+    return losses / (double)batch;
+}
+
+/* The batch standardized into ``act`` feature-major and every layer's outputs after it;
+ * ``inputs[l]`` points at layer l's inputs, ``inputs[count]`` at the network's output. */
+static void regression_forward(const regression_layer *layers, int count, const float *mean,
+                               const float *std, const float *states, long batch, long padded,
+                               float *act, float **inputs)
+{
     const int features = layers[0].inputs;
-    float *inputs[REGRESSION_MAX_LAYERS + 1];
     inputs[0] = act;
     for (int l = 0; l < count; l++)
         inputs[l + 1] = inputs[l] + (long)layers[l].inputs * padded;
@@ -135,23 +190,13 @@ static double regression_step(const regression_layer *layers, int count, const f
     }
     for (int l = 0; l < count; l++)
         regression_forward_layer(&layers[l], inputs[l], inputs[l + 1], padded, l < count - 1);
+}
 
-    /* The output's gradient: d/dz of mean((scale tanh z - y)^2), zero on the padding. */
-    long widest = 0;
-    for (int l = 0; l < count; l++)
-        widest = layers[l].outputs > widest ? layers[l].outputs : widest;
-    float *grad = grads, *in_grad = grads + widest * padded;
-    double squares = 0.0;
-    for (long s = 0; s < padded; s++) {
-        if (s >= batch) {
-            grad[s] = 0.0f;
-            continue;
-        }
-        const float t = tanhf(inputs[count][s]);
-        const float error = value_scale * t - targets[s];
-        squares += (double)error * error;
-        grad[s] = 2.0f * error / (float)batch * value_scale * (1.0f - t * t);
-    }
+/* Each layer's gradient from the output's (``grad``) down, and Adam applied to it at once. */
+static void regression_backward(const regression_layer *layers, int count, float **inputs,
+                                float *grad, float *in_grad, long padded, float *param_grad,
+                                const adam_settings *adam)
+{
     for (int l = count - 1; l >= 0; l--) {
         const regression_layer *layer = &layers[l];
         if (l > 0)
@@ -178,7 +223,30 @@ static double regression_step(const regression_layer *layers, int count, const f
         grad = in_grad;
         in_grad = swap;
     }
-    return squares / (double)batch;
+}
+
+/* One step on ``batch`` states (row-major, batch x features) and what ``head`` fits them to;
+ * returns the batch's mean loss before the step. ``act`` holds the sum of the widths times the
+ * padded batch, ``grads`` twice the widest layer times it, ``param_grad`` the largest layer's
+ * weights and biases. */
+static double regression_step(const regression_layer *layers, int count, const float *mean,
+                              const float *std, const regression_head *head,
+                              const float *states, long batch, float *act, float *grads,
+                              float *param_grad, const adam_settings *adam)
+{
+    const long padded = (batch + DENSE_BLOCK - 1) / DENSE_BLOCK * DENSE_BLOCK;
+    float *inputs[REGRESSION_MAX_LAYERS + 1];
+    regression_forward(layers, count, mean, std, states, batch, padded, act, inputs);
+    long widest = 0;
+    for (int l = 0; l < count; l++)
+        widest = layers[l].outputs > widest ? layers[l].outputs : widest;
+    float *grad = grads, *in_grad = grads + widest * padded;
+    const double loss = head->labels == NULL
+        ? regression_value_grad(inputs[count], head, batch, padded, grad)
+        : regression_level_grad(inputs[count], layers[count - 1].outputs, head, batch, padded,
+                                grad);
+    regression_backward(layers, count, inputs, grad, in_grad, padded, param_grad, adam);
+    return loss;
 }
 
 #endif

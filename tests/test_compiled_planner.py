@@ -193,9 +193,9 @@ try:
     elif asked == "regression":
         import torch
         from cloud_service.torch_networks import TorchValueNetwork
-        from cloud_service.value_regression import regression
+        from cloud_service.adam_step import adam_step
         net = TorchValueNetwork(4, 2.0)
-        regression(net, torch.optim.Adam(net.parameters()))
+        adam_step(net, torch.optim.Adam(net.parameters()))
     else:
         from planning.routes import RouteGrid
         RouteGrid(np.ones((3, 3), dtype=bool), 0.0, 0.0, 1.0, 4.0)

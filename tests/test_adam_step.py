@@ -11,14 +11,15 @@ import numpy as np
 import pytest
 import torch
 
-from cloud_service.torch_networks import TorchValueNetwork
-from cloud_service.value_regression import CompiledRegression, regression, torch_regression
+from cloud_service.adam_step import CompiledStep, adam_step, torch_step
+from cloud_service.torch_networks import TorchNetwork, TorchSinrMapNetwork, TorchValueNetwork
 from planning import PLANNER_VARIABLE
 from planning.compiled import compiled_module
 from tests import float32_bounds as bounds
 
 U = bounds.UNIT_ROUNDOFF
 STATE_SIZE, BATCH = 36, 200
+MAP_INPUTS, LEVELS = 60, 3  # icc2021's SINR map
 # A step of Adam with both betas 0, no decay and lr = eps = E moves a parameter by
 # E g / (|g| + E), within |g| / E of g itself: a power of two keeps E g exact.
 REVEALING = {"lr": 2.0**20, "betas": (0.0, 0.0), "eps": 2.0**20, "weight_decay": 0.0}
@@ -48,8 +49,7 @@ def gradients(net: TorchValueNetwork, states: np.ndarray,
     """The exact gradient of the batch's mean squared error with respect to each parameter
     (weight, bias of each layer in order), and the most a float32 backward (any order of
     summation) may stray from it, carried op by op from the forward's bounds."""
-    network = net.inference()
-    found = bounds.layers(network, states)
+    found = bounds.layers(net.inference(), states)
     scale, batch = float(net.value_scale), len(targets)
     z, z_error = found[-1].exact[:, 0], found[-1].bound[:, 0]
     t = np.tanh(z)
@@ -63,7 +63,40 @@ def gradients(net: TorchValueNetwork, states: np.ndarray,
     grad = (first * slope)[:, None]
     grad_error = rounded(grad[:, 0], np.abs(first) * slope_error + first_error * np.abs(slope)
                          + first_error * slope_error)[:, None]
-    tensors = {name: t.astype(np.float64) for name, t in network.tensors.items()}
+    return backpropagated(net, found, grad, grad_error)
+
+
+def level_gradients(net: TorchSinrMapNetwork, states: np.ndarray,
+                    labels: np.ndarray) -> list[bounds.Bounded]:
+    """As ``gradients``, of the batch's mean cross-entropy of the softmax of the logits.
+
+    The softmax is the same whatever its shift, so the exact one is taken at the float32 step's
+    own shift (a logit it computed): the step's errors are then each logit's, the shift's
+    subtraction, exp, the sum of exps and the quotient, one rounding each."""
+    found = bounds.layers(net.inference(), states)
+    z, z_error = found[-1].exact, found[-1].bound
+    classes, batch = z.shape[1], len(labels)
+    shifted = z - z.max(axis=1, keepdims=True)
+    shifted_error = z_error + z_error.max(axis=1, keepdims=True)  # the shift read off too
+    shifted_error = shifted_error + U * (np.abs(shifted) + shifted_error)
+    exp_error = np.expm1(shifted_error) + bounds.TRANSCENDENTAL_ERROR * np.exp(shifted_error)
+    total_error = (1 + exp_error.max(axis=1, keepdims=True)) * (1 + bounds.gamma(classes - 1)) - 1
+    share = np.exp(shifted) / np.exp(shifted).sum(axis=1, keepdims=True)
+    share_error = share * ((1 + exp_error) * (1 + U) / (1 - total_error) - 1)
+    one_hot = np.eye(classes)[labels]
+    miss = share - one_hot
+    miss_error = rounded(miss, share_error)
+    grad = miss / batch
+    grad_error = rounded(grad, miss_error / batch)
+    return backpropagated(net, found, grad, grad_error)
+
+
+def backpropagated(net: TorchNetwork, found: list[bounds.Bounded], grad: np.ndarray,
+                   grad_error: np.ndarray) -> list[bounds.Bounded]:
+    """Each parameter's gradient from the output's, ``grad`` (batch, outputs) within
+    ``grad_error``, through the layers ``found`` bounds."""
+    tensors = {name: t.astype(np.float64) for name, t in net.inference().tensors.items()}
+    batch = len(grad)
     found_params: list[bounds.Bounded] = []
     for layer in range(len(found) - 2, -1, -1):
         inputs = found[layer].exact if layer == 0 else np.maximum(found[layer].exact, 0.0)
@@ -93,22 +126,30 @@ def gradients(net: TorchValueNetwork, states: np.ndarray,
     return found_params
 
 
-def parameters(net: TorchValueNetwork) -> list[np.ndarray]:
+def parameters(net: TorchNetwork) -> list[np.ndarray]:
     return [p.detach().numpy().astype(np.float64) for layer in net.body
             if isinstance(layer, torch.nn.Linear) for p in (layer.weight, layer.bias)]
 
 
-def adam(net: TorchValueNetwork, settings: dict) -> torch.optim.Adam:
+def adam(net: TorchNetwork, settings: dict) -> torch.optim.Adam:
     return torch.optim.Adam(net.parameters(), fused=True, **settings)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_each_parameter_moves_by_its_gradient(seed):
-    net, states, targets = network_and_batch(seed)
-    expected = gradients(net, states, targets)
-    before = parameters(net)
-    CompiledRegression(net, adam(net, REVEALING))(states, targets)
-    after = parameters(net)
+def level_network_and_batch(seed: int) -> tuple[TorchSinrMapNetwork, np.ndarray, np.ndarray]:
+    """A SINR map as a survey fit starts it, standardized on its inputs, and a batch of
+    positions' features with every level among their labels."""
+    torch.manual_seed(seed)
+    net = TorchSinrMapNetwork(MAP_INPUTS, LEVELS)
+    rng = np.random.default_rng(seed)
+    states = (rng.standard_normal((BATCH, MAP_INPUTS)) * 20 - 5).astype(np.float32)
+    net.standardize.fit(torch.from_numpy(states))
+    labels = rng.integers(0, LEVELS, BATCH)
+    return net, states, labels
+
+
+def moves_within_bounds(before: list[np.ndarray], after: list[np.ndarray],
+                        expected: list[bounds.Bounded]) -> None:
+    """Each parameter moved by REVEALING's step on its gradient, within the gradient's bound."""
     big = REVEALING["lr"]
     for k, (old, new, gradient) in enumerate(zip(before, after, expected, strict=True)):
         moved = old - new
@@ -121,10 +162,39 @@ def test_each_parameter_moves_by_its_gradient(seed):
     assert max(np.abs(g.exact).max() for g in expected) > 1e-3  # the step had work to do
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_each_parameter_moves_by_its_gradient(seed):
+    net, states, targets = network_and_batch(seed)
+    expected = gradients(net, states, targets)
+    before = parameters(net)
+    CompiledStep(net, adam(net, REVEALING))(states, targets)
+    moves_within_bounds(before, parameters(net), expected)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_each_map_parameter_moves_by_its_cross_entropy_gradient(seed):
+    net, states, labels = level_network_and_batch(seed)
+    expected = level_gradients(net, states, labels)
+    logits = bounds.last_layer(net.inference(), states)
+    before = parameters(net)
+    loss = CompiledStep(net, adam(net, REVEALING))(states, labels)
+    moves_within_bounds(before, parameters(net), expected)
+    # The loss it reports: the batch's mean cross-entropy before the step. Each state's term,
+    # log of the sum of exps less the label's logit, strays by its logits' errors, the sum's
+    # (within gamma(2) beside each exp's) and log's own.
+    z, z_error = logits.exact, logits.bound
+    log_total = np.log(np.exp(z).sum(axis=1))
+    exact = float(np.mean(log_total - z[np.arange(BATCH), labels]))
+    sum_error = np.expm1(2 * z_error.max(axis=1)) + bounds.gamma(LEVELS + 1)
+    term_error = (2 * z_error.max(axis=1) + np.log1p(sum_error)
+                  + bounds.TRANSCENDENTAL_ERROR * (np.abs(log_total) + 1))
+    assert abs(loss - exact) <= term_error.mean()
+
+
 def test_adam_steps_as_torch_defines_it_on_its_own_moments():
     net, states, targets = network_and_batch(5)
     optimizer = adam(net, PAPER)
-    step = CompiledRegression(net, optimizer)
+    step = CompiledStep(net, optimizer)
     for _ in range(3):  # moments away from zero
         step(states[::-1].copy(), targets[::-1].copy())
     linears = [layer for layer in net.body if isinstance(layer, torch.nn.Linear)]
@@ -172,35 +242,38 @@ def test_torch_goes_on_where_the_compiled_step_left_off():
     hands, and each step keeps the count."""
     net, states, targets = network_and_batch(3)
     optimizer = adam(net, PAPER)
-    compiled = CompiledRegression(net, optimizer)
+    compiled = CompiledStep(net, optimizer)
     for _ in range(2):
         compiled(states, targets)
-    torch_regression(net, optimizer)(states, targets)
+    torch_step(net, optimizer)(states, targets)
     compiled(states, targets)
     for p in net.parameters():
         state = optimizer.state[p]
         assert float(state["step"]) == 4 and state["step"].dtype == torch.float32
     loaded = adam(net, PAPER)
     loaded.load_state_dict(optimizer.state_dict())
-    CompiledRegression(net, loaded)(states, targets)
+    CompiledStep(net, loaded)(states, targets)
     assert float(loaded.state[next(net.parameters())]["step"]) == 5
 
 
 def test_the_environment_chooses_the_step(monkeypatch):
-    net, _, _ = network_and_batch(0)
+    nets = network_and_batch(0)[0], level_network_and_batch(0)[0]
     monkeypatch.delenv(PLANNER_VARIABLE, raising=False)
-    assert isinstance(regression(net, adam(net, PAPER)), CompiledRegression)
+    assert all(isinstance(adam_step(net, adam(net, PAPER)), CompiledStep) for net in nets)
     monkeypatch.setenv(PLANNER_VARIABLE, "reference")
-    assert not isinstance(regression(net, adam(net, PAPER)), CompiledRegression)
+    assert not any(isinstance(adam_step(net, adam(net, PAPER)), CompiledStep) for net in nets)
 
 
 def test_a_bad_batch_is_refused_in_one_line():
     net, states, targets = network_and_batch(0)
-    step = CompiledRegression(net, adam(net, PAPER))
+    step = CompiledStep(net, adam(net, PAPER))
     with pytest.raises(ValueError, match="targets"):
         step(states, targets[:-1])
     with pytest.raises(ValueError, match="inputs"):
         step(states[:, :-1].copy(), targets)
+    net, states, labels = level_network_and_batch(0)
+    with pytest.raises(ValueError, match="outside the network's 3 levels"):
+        CompiledStep(net, adam(net, PAPER))(states, np.where(labels == 0, LEVELS, labels))
     core = compiled_module("_regression")
     with pytest.raises(ValueError, match="float32"):
         core.ValueRegression([(np.zeros((1, 3)),) * 6], np.zeros(3), np.ones(3), 2.0)
@@ -211,14 +284,14 @@ def test_a_step_is_kept_until_the_optimizer_takes_other_moments():
     optimizer brings moments of its own, and a step made afresh reads those."""
     net, states, targets = network_and_batch(4)
     optimizer = adam(net, PAPER)
-    first = regression(net, optimizer)
+    first = adam_step(net, optimizer)
     first(states, targets)
-    assert regression(net, optimizer, first) is first
+    assert adam_step(net, optimizer, first) is first
     saved = io.BytesIO()
     torch.save(optimizer.state_dict(), saved)
     saved.seek(0)
     optimizer.load_state_dict(torch.load(saved, weights_only=True))
-    again = regression(net, optimizer, first)
+    again = adam_step(net, optimizer, first)
     assert again is not first
     again(states, targets)
     assert float(optimizer.state[next(net.parameters())]["step"]) == 2
@@ -230,9 +303,27 @@ def test_a_step_kept_for_batches_of_any_size_steps_as_a_fresh_one():
     net, states, targets = network_and_batch(6)
     kept_net, fresh_net = net, copy.deepcopy(net)
     kept_optimizer, fresh_optimizer = adam(kept_net, PAPER), adam(fresh_net, PAPER)
-    kept = CompiledRegression(kept_net, kept_optimizer)
+    kept = CompiledStep(kept_net, kept_optimizer)
     for rows in (slice(0, 50), slice(0, 200), slice(100, 117)):
-        assert kept(states[rows], targets[rows]) == CompiledRegression(
+        assert kept(states[rows], targets[rows]) == CompiledStep(
             fresh_net, fresh_optimizer)(states[rows], targets[rows])
     assert all(np.array_equal(a.detach().numpy(), b.detach().numpy())
                for a, b in zip(kept_net.parameters(), fresh_net.parameters(), strict=True))
+
+
+@pytest.mark.parametrize("steps", [1, 7, 1000])
+def test_a_fit_s_learning_rates_are_torch_s_schedule_bit_for_bit(steps):
+    """Each fit sets the rate itself (the compiled step calls no optimizer.step, which torch's
+    scheduler expects): the same numbers as torch's cosine schedule, so that torch's step still
+    fits the maps it fitted before."""
+    from cloud_service.sinr_training import FINAL_LR, LEARNING_RATE, cosine_rates
+
+    optimizer = torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=LEARNING_RATE)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps, eta_min=FINAL_LR)
+    expected = []
+    for _ in range(steps):
+        expected.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        schedule.step()
+    assert list(cosine_rates(steps)) == expected
+    assert expected[0] == LEARNING_RATE and (steps == 1 or expected[-1] < LEARNING_RATE / 2)
