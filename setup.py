@@ -19,11 +19,12 @@ _spec.loader.exec_module(_digest)
 
 def compiled(name: str, **options) -> Extension:
     """planning.<name> from planning/<name>.pyx, stamped with the digest of every compiled
-    source: a change to any of them makes every module stale."""
+    source: a change to any of them makes every module stale, and so each is rebuilt."""
     return Extension(
         f"planning.{name}",
         [f"planning/{name}.pyx"],
         include_dirs=["planning"],
+        depends=[f"planning/{source}" for source in _digest.COMPILED_SOURCES],
         define_macros=[("PLANNING_SOURCE_DIGEST",
                         f'"{_digest.source_digest(HERE / "planning")}"')],
         extra_compile_args=["-O3"],
