@@ -2,8 +2,8 @@
  * values, the SINR map on the cross-entropy of its levels. The forward with its activations
  * kept, the backward, and torch's Adam (L2 weight decay added to the gradient) applied to each
  * layer as soon as its gradient is whole. torch's own step is the reference
- * (cloud_service.value_learner); this one spares its fixed cost per operation, which is most of
- * a step on a network this small.
+ * (cloud_service.adam_step); this one spares its fixed cost per operation, which is most of a
+ * step on networks this small.
  *
  * Activations are held feature-major over the batch padded to whole blocks (value i of state s
  * at act[i * padded + s]), so every product runs one state per vector lane as in _dense.h. The
