@@ -12,18 +12,32 @@ the field wanders across an edge within a metre or two. Two ceilings, for both r
   and a hundred reports per square metre: 3 and 30 times the survey map's 30,000.
 
 What the survey network and the online maps reach (bench_adaptation, the survey map's card)
-is to be read against these. One CPU thread; a few seconds.
+is to be read against these. Beside them, the network that learns the map, fitted two ways
+to the survey's reports with their SINR in 0.5 dB steps: the paper's classifier of the level
+reported, and a regression of the SINR reported whose level is read off the band edges. One
+CPU thread; about a minute.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 from scipy.ndimage import uniform_filter
 from scipy.special import ndtr
 
 from benchmarks.bench_adaptation import TRUTH_SPACING_M, TruthGrid
 from benchmarks.common import Figure
 from cloud_service.no_jammer_belief import map_reading
+from cloud_service.simulated_measurements import simulated_measurements
+from cloud_service.sinr_training import (
+    L2,
+    LEARNING_RATE,
+    cosine_rates,
+    mini_batches,
+    train_sinr_map,
+)
+from cloud_service.torch_networks import TorchSinrMapNetwork
+from planning.networks import predict_probabilities
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario
 
@@ -32,6 +46,8 @@ REPORTS_PER_SQUARE_METRE = (10, 100)
 LOCAL_SQUARES_M = (0.5, 1.0, 1.5, 2.5)
 _CELL_M = 0.5  # reports are counted per cell of this side, then summed over a square of cells
 SEED = 0
+SURVEY_REPORTS = 30_000  # jamnav fit-sinr's default survey
+FIT_STEPS = 10_000  # jamnav fit-sinr's default: both networks get the same mini-batches
 
 
 def run() -> list[Figure]:
@@ -59,7 +75,65 @@ def run() -> list[Figure]:
             for how, (right, square_m) in best.items():
                 figures.append(Figure(f"{name}: {density} reports per m2, {how} "
                                       f"in {square_m:g} m squares, right on", right, "%"))
+        figures += _network_maps(scenario, grid, sinr_db)
     return figures
+
+
+def _network_maps(scenario: Scenario, grid: TruthGrid, true_db: np.ndarray) -> list[Figure]:
+    """The survey's network fitted to its reports as the paper fits it (the level reported)
+    and as a regression of the SINR reported: how often each map's level is right, and how
+    far its SINR lies from the truth (the classifier's read through the receiver's noise, as
+    the cloud reads it; without noise, its probabilities carry no SINR to read)."""
+    reporting = scenario.changed({"uav.report": "db"})
+    survey = simulated_measurements(reporting, None, SURVEY_REPORTS, np.random.default_rng(SEED))
+    radio, truth = grid.radio, grid.levels(None)
+    classifier = train_sinr_map(survey.features, survey.levels, scenario.channel.level_count,
+                                steps=FIT_STEPS, seed=SEED).network
+    probabilities = predict_probabilities(classifier, grid.features)
+    regressed_db = _regressed_sinr_db(survey.features, survey.sinr_db, grid.features)
+    name = scenario.name
+    figures = [
+        Figure(f"{name}: the survey's level classifier, right on",
+               100.0 * float(np.mean(probabilities.argmax(axis=-1) == truth)), "%"),
+        Figure(f"{name}: a regression of the survey's SINR, its level right on",
+               100.0 * float(np.mean(radio.level_of(regressed_db) == truth)), "%"),
+        Figure(f"{name}: a regression of the survey's SINR, off by (rms)",
+               _rms(regressed_db - true_db), "dB"),
+    ]
+    if radio.measurement_noise_db > 0:
+        read_db, _ = map_reading(radio, probabilities, radio.measurement_noise_db)
+        figures.append(Figure(f"{name}: the survey's level classifier read as a SINR, off by "
+                              "(rms)", _rms(read_db - true_db), "dB"))
+    return figures
+
+
+def _regressed_sinr_db(features: np.ndarray, sinr_db: np.ndarray,
+                       at_features: np.ndarray) -> np.ndarray:
+    """The SINR (dB) at ``at_features`` of the map network with one output fitted to the
+    reports' SINR ``sinr_db`` (standardized) by squared error, with the classifier's
+    optimizer, schedule, batches and step budget."""
+    torch.manual_seed(SEED)
+    x = torch.as_tensor(features, dtype=torch.float32)
+    target = torch.as_tensor(sinr_db, dtype=torch.float32)
+    mean, spread = target.mean(), target.std()
+    module = TorchSinrMapNetwork(x.shape[1], 1)
+    module.standardize.fit(x)
+    optimizer = torch.optim.Adam(module.parameters(), lr=LEARNING_RATE, weight_decay=L2)
+    batches = mini_batches(len(target), torch.Generator().manual_seed(SEED))
+    for rate in cosine_rates(FIT_STEPS):
+        rows = next(batches)
+        optimizer.param_groups[0]["lr"] = rate
+        loss = ((module(x[rows])[:, 0] - (target[rows] - mean) / spread) ** 2).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        predicted = module(torch.as_tensor(at_features, dtype=torch.float32))[:, 0]
+    return (predicted * spread + mean).numpy().astype(np.float64)
+
+
+def _rms(error: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(error))))
 
 
 def _median_step_db(grid: TruthGrid, sinr_db: np.ndarray) -> float:

@@ -96,7 +96,7 @@ def train_sinr_map(
     optimizer = torch.optim.Adam(module.parameters(), lr=LEARNING_RATE, weight_decay=L2)
     step, rates = adam_step(module, optimizer), cosine_rates(steps)
     train_x, train_y = train_x.numpy(), train_y.numpy()
-    batches = _mini_batches(len(train_y), generator)
+    batches = mini_batches(len(train_y), generator)
     accuracy, done = float("nan"), 0
     while done < steps:
         rows = next(batches).numpy()
@@ -155,7 +155,7 @@ def _module_to_train(network: SinrMapNetwork | None, train_x: torch.Tensor, leve
     return module
 
 
-def _mini_batches(count: int, generator: torch.Generator) -> Iterator[torch.Tensor]:
+def mini_batches(count: int, generator: torch.Generator) -> Iterator[torch.Tensor]:
     """Rows of ``BATCH_SIZE`` out of ``count``, in an order ``generator`` reshuffles at each
     new epoch; an epoch's rows too few for a whole batch are left out."""
     order = torch.randperm(count, generator=generator)
