@@ -8,6 +8,10 @@ scenario's rules are refused and counted per reason (see ``MeasurementSpec.scree
 counters persist with the data.
 
 One connection, guarded by a lock, so the bus thread and the retraining worker can share it.
+
+The rows stored most recently are also kept in memory (``RecentRows``): the mapper reads the
+uploads since a change again at every job, and reading them back from SQLite was the largest
+single cost of an online map's flight (BENCHMARKS.md, "The cloud's work in the compiled core").
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ from __future__ import annotations
 import math
 import sqlite3
 import threading
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import NamedTuple
@@ -48,6 +52,9 @@ _LOOKUP_CHUNK = 900  # ids per query: below the 999 variables of SQLite builds b
 # working arrays over a whole memory outgrow the caches (BENCHMARKS.md, "A restarted cloud's
 # reference").
 _READ_CHUNK = 4096
+# Rows kept in memory as well (``RecentRows``): far more than a change's handling reads (it
+# settles after 4,000 uploads, RetrainConfig), a few megabytes of features.
+RECENT_ROWS_KEPT = 20_000
 
 Uploads = MeasurementBatch | Iterable[Measurement | Mapping]
 
@@ -77,6 +84,7 @@ class SinrMemory:
         self._db.executescript(_SCHEMA)
         self._add_reported_sinr()
         self._check_spec()
+        self._recent = RecentRows(min(RECENT_ROWS_KEPT, capacity), self.newest_time())
 
     def _add_reported_sinr(self) -> None:
         """A memory written before reports carried the SINR gets the column, empty: its rows
@@ -126,6 +134,8 @@ class SinrMemory:
                 self._db.execute(
                     "DELETE FROM measurements WHERE seq <= (SELECT MAX(seq) FROM measurements)"
                     " - ?", (self.capacity,))
+            for new, _ in stored:
+                self._recent.add(new)
         return stored
 
     def _insert(self, batch: MeasurementBatch) -> tuple[MeasurementBatch, int]:
@@ -204,6 +214,9 @@ class SinrMemory:
 
     def since(self, time: float) -> MeasurementBatch:
         """Stored measurements taken at or after ``time``, in arrival order."""
+        with self._lock:
+            if self._recent.holds_since(time):
+                return self._recent.since(time, self.spec.feature_size)
         return self._select("WHERE time >= ? ORDER BY seq", (time,))
 
     def recent(self, n: int) -> MeasurementBatch:
@@ -250,3 +263,40 @@ class SinrMemory:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class RecentRows:
+    """The rows a memory stored most recently, at most ``kept`` of them, in arrival order: all
+    the rows taken at or after a time, as SQLite would give them back, when every row taken
+    that late is among them. A row is stored after it is taken, so a row older than these was
+    taken no later than the latest time of the rows held before them (``older_taken_by``,
+    from the memory's newest row when it opened): later times are all here. The memory deletes
+    only rows beyond its capacity, and ``kept`` is at most that: every row here is stored."""
+
+    def __init__(self, kept: int, older_taken_by: float | None):
+        self.kept = kept
+        self.older_taken_by = -math.inf if older_taken_by is None else older_taken_by
+        self._batches: deque[MeasurementBatch] = deque()
+        self._rows = 0
+
+    def add(self, stored: MeasurementBatch) -> None:
+        """Keep ``stored`` (rows just stored), in the dtypes SQLite gives back."""
+        if not len(stored):
+            return
+        self._batches.append(MeasurementBatch.of_arrays(
+            stored.ids, stored.sources, stored.steps, stored.times, stored.features,
+            stored.levels, stored.sinr_db))
+        self._rows += len(stored)
+        while self._rows > self.kept:
+            oldest = self._batches.popleft()
+            self._rows -= len(oldest)
+            self.older_taken_by = max(self.older_taken_by, float(oldest.times.max()))
+
+    def holds_since(self, time: float) -> bool:
+        return time > self.older_taken_by
+
+    def since(self, time: float, feature_size: int) -> MeasurementBatch:
+        taken = [batch.take(batch.times >= time) for batch in self._batches
+                 if batch.times.max() >= time]
+        return (MeasurementBatch.concatenate(taken) if taken
+                else MeasurementBatch.empty(feature_size))

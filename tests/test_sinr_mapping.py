@@ -172,6 +172,45 @@ def test_memory_survives_reopen_and_dedupes(tmp_path, scenario):
         assert len(set(sample.ids)) == 100 and set(sample.ids) <= set(everything.ids)
 
 
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.tuples(st.integers(1, 30), st.floats(0.0, 100.0)), min_size=1, max_size=12),
+       st.integers(5, 60), st.integers(20, 120), st.lists(st.floats(-1.0, 101.0), min_size=3,
+                                                          max_size=3))
+def test_the_uploads_since_a_time_are_those_sqlite_holds(tmp_path_factory, scenario, uploads,
+                                                         kept, capacity, asked):
+    """The rows kept in memory answer ``since`` exactly as SQLite does, row for row and bit for
+    bit, whatever order the uploads' times come in (a late upload of old reports), once rows
+    leave them and once the memory's capacity drops rows, and in a memory opened again."""
+    spec = MeasurementSpec.of(scenario)
+    path = tmp_path_factory.mktemp("recent") / "memory.sqlite"
+    rng = np.random.default_rng(len(uploads))
+
+    def agree(memory: SinrMemory) -> None:
+        for time in asked:
+            got = memory.since(time)
+            want = memory._select("WHERE time >= ? ORDER BY seq", (time,))
+            assert got.ids == want.ids and got.sources == want.sources
+            for name in ("steps", "times", "features", "levels", "sinr_db"):
+                np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+                assert getattr(got, name).dtype == getattr(want, name).dtype
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("cloud_service.sinr_memory.RECENT_ROWS_KEPT", kept)
+        with SinrMemory(path, spec, capacity=capacity) as memory:
+            for count, taken in uploads:
+                batch = simulated_measurements(scenario, None, count, rng)
+                batch = labelled_batch(scenario, positions_from_features(scenario, batch.features),
+                                       batch.levels, rng, time=taken + rng.uniform(0, 5, count),
+                                       sinr_db=np.where(rng.random(count) < 0.5, np.nan,
+                                                        rng.normal(0.0, 3.0, count)))
+                memory.append(batch)
+                agree(memory)
+        with SinrMemory(path, spec, capacity=capacity) as memory:
+            agree(memory)
+            memory.append(simulated_measurements(scenario, None, 7, rng, time=50.0))
+            agree(memory)
+
+
 def test_memory_keeps_the_reported_sinr_and_reads_an_older_file_as_level_reports(tmp_path,
                                                                                   scenario):
     """dB reports come back with their SINRs (records and arrays alike), level reports with
