@@ -103,9 +103,8 @@ class JammerEvidence:
         tables = ReportTables(radio.level_edges_db, np.hypot(belief.sd_db, report_sigma_db),
                               outlier_share, reports.step_db)
         rows = np.arange(len(xy))
-        table = tables.log_probability(belief.mean_db[:, None] - loss_db, levels[:, None],
-                                       rows[:, None], reported_db[:, None])
-        self.table = (weights[:, None] * table).astype(np.float32).ravel()
+        self.table = tables.weighted_tables(belief.mean_db, loss_db, levels, reported_db,
+                                            weights).ravel()
         self.effective_count = float(weights.sum())  # reports that count as independent
         self.ratio_count = len(ratios_db)
         self.row_start = (rows * self.ratio_count).astype(np.int32)

@@ -15,6 +15,7 @@ import math
 import numpy as np
 from scipy.special import log_ndtr, ndtr
 
+from planning.compiled import chosen_planner, compiled_module
 from shared.radio import RadioModel
 
 # What a report adds once the world's no-jammer SINR is known: the receiver's noise and the
@@ -100,6 +101,33 @@ class ReportTables:
                                      (offsets_db + step_db / 2.0) / spread),
                 outlier_share, step_db / OUTLIER_SPAN_DB).ravel()
             self.offset_count = len(offsets_db)
+
+    def weighted_tables(self, believed_db: np.ndarray, loss_db: np.ndarray, levels: np.ndarray,
+                        reported_db: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """Each measurement's (the rows of these tables, in order) log-probability of its
+        report where its SINR is ``believed_db`` (n,) less each of ``loss_db`` ((R,), or
+        (n, R) for each its own), times its weight: (n, R) float32. The compiled core reads
+        the tables unless ``JAMNAV_PLANNER=reference``: the same arithmetic, the same bits."""
+        rows = np.arange(len(believed_db))
+        if chosen_planner() != "compiled":
+            return (weights[:, None] * self.log_probability(
+                believed_db[:, None] - loss_db, levels[:, None], rows[:, None],
+                reported_db[:, None])).astype(np.float32)
+        out = np.empty((len(believed_db), np.shape(loss_db)[-1]), dtype=np.float32)
+        with_db = self.step_db is not None
+        compiled_module("_evidence").weighted_report_tables(
+            np.ascontiguousarray(believed_db, dtype=np.float64),
+            np.ascontiguousarray(np.atleast_2d(loss_db), dtype=np.float64),
+            np.ascontiguousarray(self.table_of[rows] * self.level_count + levels,
+                                 dtype=np.int64),
+            self.values, self.sinr_count, _SINR_RANGE_DB[0], _SINR_STEP_DB,
+            np.ascontiguousarray(reported_db if with_db else np.full(len(rows), np.nan),
+                                 dtype=np.float64),
+            np.ascontiguousarray(self.table_of[rows] if with_db else np.zeros(len(rows)),
+                                 dtype=np.int64),
+            self.db_values if with_db else np.zeros(1), self.offset_count if with_db else 1,
+            _OFFSET_RANGE_DB, np.ascontiguousarray(weights, dtype=np.float64), out)
+        return out
 
     def log_probability(self, sinr_db: np.ndarray, levels: np.ndarray, rows: np.ndarray,
                         reported_db: np.ndarray | None = None):

@@ -1,10 +1,13 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True
 # cython: initializedcheck=False
-"""The sums of the cloud's jammer search, compiled: for each hypothesis and each power, the
-measurements' tabulated log-likelihoods added up (``cloud_service.jammer_evidence``, whose numpy
-gather is the reference). numpy builds an index per hypothesis, power and measurement, and
-gathers and sums them in float32; here each measurement's entries are read where they lie and
-added in float64, so the sums agree with the reference's within its float32 rounding."""
+"""The cloud's jammer search, compiled: each measurement's table of log-likelihoods over the
+jammer's power (``weighted_report_tables``: read from the report tables of
+``cloud_service.report_likelihood``, whose numpy gathers are the reference, with the same
+arithmetic, so bit for bit the same), and for each hypothesis and each power, those tables'
+entries added up (``add_table_entries``: numpy builds an index per hypothesis, power and
+measurement, and gathers and sums them in float32; here each measurement's entries are read
+where they lie and added in float64, so the sums agree with the reference's within its float32
+rounding)."""
 
 cdef extern from *:
     """
@@ -13,6 +16,8 @@ cdef extern from *:
     #endif
     """
     const char *PLANNING_SOURCE_DIGEST
+
+from libc.math cimport isfinite, rint
 
 import numpy as np
 
@@ -44,3 +49,65 @@ def add_table_entries(const int[:, ::1] first_entry, const int[::1] power_offset
                 sums = &out[h, 0]
                 for p in range(powers):
                     sums[p] += entries[power_offsets[p]]
+
+
+cdef inline Py_ssize_t _entry(double position, double low, double step, Py_ssize_t count) noexcept nogil:
+    """numpy's ``clip(rint((position - low) / step).astype(int64), 0, count - 1)``, clipped
+    before the cast (the same for every position a table covers)."""
+    cdef double entry = rint((position - low) / step)
+    if entry < 0:
+        return 0
+    if entry > count - 1:
+        return count - 1
+    return <Py_ssize_t>entry
+
+
+def _rows_within(rows, row_length: int, size: int) -> bool:
+    return rows.min() >= 0 and (rows.max() + 1) * row_length <= size
+
+
+def weighted_report_tables(const double[::1] believed_db, const double[:, ::1] loss_db,
+                           const long[::1] level_rows, const double[::1] level_values,
+                           Py_ssize_t sinr_count, double sinr_low_db, double sinr_step_db,
+                           const double[::1] reported_db, const long[::1] db_rows,
+                           const double[::1] db_values, Py_ssize_t offset_count,
+                           double offset_range_db, const double[::1] weights,
+                           float[:, ::1] out):
+    """``out[i, j]`` = ``weights[i]`` times the log-probability of measurement i's report
+    where its SINR is ``believed_db[i] - loss_db[i or 0, j]``, in float32: from the table of
+    its level (its row ``level_rows[i]`` of ``level_values``, over ``sinr_count`` SINRs from
+    ``sinr_low_db`` in steps of ``sinr_step_db``) or, where its reported SINR is finite, from
+    the table of its dB report (row ``db_rows[i]`` of ``db_values``, over ``offset_count``
+    offsets of the report from the SINR, from ``-offset_range_db``, in the same steps)."""
+    cdef Py_ssize_t count = out.shape[0], columns = out.shape[1], i, j
+    cdef Py_ssize_t loss_stride = 0 if loss_db.shape[0] == 1 else 1
+    cdef const double *levels_row
+    cdef const double *db_row
+    cdef const double *loss
+    cdef double sinr, weight, value
+    if loss_db.shape[1] != columns or loss_db.shape[0] not in (1, count):
+        raise ValueError(f"losses of shape ({loss_db.shape[0]}, {loss_db.shape[1]}) for "
+                         f"{count} measurements and {columns} columns")
+    lengths = {"believed": believed_db.shape[0], "level rows": level_rows.shape[0],
+               "reported": reported_db.shape[0], "dB rows": db_rows.shape[0],
+               "weights": weights.shape[0]}
+    for name, length in lengths.items():
+        if length != count:
+            raise ValueError(f"{length} {name} for {count} measurements")
+    if count and not (_rows_within(np.asarray(level_rows), sinr_count, level_values.shape[0])
+                      and _rows_within(np.asarray(db_rows), offset_count, db_values.shape[0])):
+        raise ValueError("a row beyond its table")
+    with nogil:
+        for i in range(count):
+            levels_row = &level_values[level_rows[i] * sinr_count]
+            db_row = &db_values[db_rows[i] * offset_count]
+            loss = &loss_db[i * loss_stride, 0]
+            weight = weights[i]
+            for j in range(columns):
+                sinr = believed_db[i] - loss[j]
+                if isfinite(reported_db[i]):
+                    value = db_row[_entry((reported_db[i] - sinr) + offset_range_db, 0.0,
+                                          sinr_step_db, offset_count)]
+                else:
+                    value = levels_row[_entry(sinr, sinr_low_db, sinr_step_db, sinr_count)]
+                out[i, j] = <float>(weight * value)

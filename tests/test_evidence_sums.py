@@ -1,6 +1,6 @@
-"""The jammer search's sums in the compiled core (planning/_evidence.pyx) against the numpy
-gather they replace: the same log-likelihood ratios within the reference's float32 rounding,
-and so the same estimate."""
+"""The jammer search in the compiled core (planning/_evidence.pyx) against the numpy gathers it
+replaces: the measurements' tables read bit for bit alike, the same log-likelihood ratios
+within the reference's float32 rounding, and so the same estimate."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import pytest
 from cloud_service.jammer_estimation import estimate_jammer
 from cloud_service.jammer_evidence import JammerEvidence, Reports, independence_weights
 from cloud_service.no_jammer_belief import sinr_beliefs
+from cloud_service.report_likelihood import ReportTables
 from planning import PLANNER_VARIABLE
 from planning.compiled import compiled_module
 from shared.radio import JammerParams, RadioModel
@@ -95,3 +96,48 @@ def test_an_entry_beyond_the_table_is_refused():
     add(np.array([[3], [4]], dtype=np.int32), np.array([0, 5], dtype=np.int32),
         np.arange(10, dtype=np.float32), out)
     assert out.tolist() == [[3.0 + 4.0, 8.0 + 9.0]]
+
+
+@pytest.mark.parametrize("step_db", [None, 0.5])
+@pytest.mark.parametrize("each_its_own_loss", [False, True])
+def test_the_report_tables_are_read_bit_for_bit_as_numpy_reads_them(monkeypatch, step_db,
+                                                                    each_its_own_loss):
+    """The same arithmetic in the same order: every entry equal, SINRs beyond the tables'
+    range (clipped to their ends) and half-step ties among them."""
+    rng = np.random.default_rng(11)
+    count, columns = 400, 250
+    tables = ReportTables(np.array([-3.0, -2.21]), rng.uniform(0.3, 3.0, count), 0.01, step_db)
+    believed = rng.normal(0.0, 15.0, count)
+    believed[:6] = [-200.0, 200.0, -60.025, 39.975, 0.0, -2.21]
+    loss = (rng.uniform(0.0, 40.0, (count, columns)) if each_its_own_loss
+            else np.linspace(0.0, 40.0, columns))
+    levels = rng.integers(0, 3, count)
+    reported = np.where(rng.random(count) < 0.5, np.round(rng.normal(0.0, 15.0, count) / 0.5)
+                        * 0.5, np.nan)
+    weights = rng.uniform(0.05, 1.0, count)
+    read = {}
+    for planner in ("compiled", "reference"):
+        monkeypatch.setenv(PLANNER_VARIABLE, planner)
+        read[planner] = tables.weighted_tables(believed, loss, levels, reported, weights)
+    assert read["compiled"].dtype == read["reference"].dtype == np.float32
+    assert read["compiled"].shape == (count, columns)
+    np.testing.assert_array_equal(read["compiled"].view(np.int32),
+                                  read["reference"].view(np.int32))
+    assert np.ptp(read["reference"]) > 1.0  # entries differ: a wrong index would show
+
+
+def test_a_table_row_beyond_the_tables_is_refused():
+    read = compiled_module("_evidence").weighted_report_tables
+    one, none = np.zeros(1), np.full(1, np.nan)
+    arguments = dict(believed_db=one, loss_db=np.zeros((1, 3)), level_rows=np.array([1]),
+                     level_values=np.arange(4.0), sinr_count=2, sinr_low_db=0.0,
+                     sinr_step_db=1.0, reported_db=none, db_rows=np.array([0]),
+                     db_values=one, offset_count=1, offset_range_db=0.0, weights=np.ones(1),
+                     out=np.zeros((1, 3), dtype=np.float32))
+    read(*arguments.values())
+    # Row 1 of the level values, SINRs 0, 0 and 0 read at entry 0: value 2.
+    assert arguments["out"].tolist() == [[2.0, 2.0, 2.0]]
+    with pytest.raises(ValueError, match="beyond its table"):
+        read(*{**arguments, "level_rows": np.array([2])}.values())
+    with pytest.raises(ValueError, match="for 1 measurements"):
+        read(*{**arguments, "weights": np.ones(2)}.values())
