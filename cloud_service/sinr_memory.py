@@ -10,8 +10,8 @@ counters persist with the data.
 One connection, guarded by a lock, so the bus thread and the retraining worker can share it.
 
 The rows stored most recently are also kept in memory (``RecentRows``): the mapper reads the
-uploads since a change again at every job, and reading them back from SQLite was the largest
-single cost of an online map's flight (BENCHMARKS.md, "The cloud's work in the compiled core").
+uploads since a change again at every job, which SQLite answers by scanning the whole memory
+(BENCHMARKS.md, "The cloud's work in the compiled core").
 """
 
 from __future__ import annotations
