@@ -276,27 +276,30 @@ class RecentRows:
     def __init__(self, kept: int, older_taken_by: float | None):
         self.kept = kept
         self.older_taken_by = -math.inf if older_taken_by is None else older_taken_by
-        self._batches: deque[MeasurementBatch] = deque()
+        # Each stored batch with the earliest and latest time it holds, so that a read looks
+        # into only the batches that hold a row late enough.
+        self._batches: deque[tuple[MeasurementBatch, float, float]] = deque()
         self._rows = 0
 
     def add(self, stored: MeasurementBatch) -> None:
         """Keep ``stored`` (rows just stored), in the dtypes SQLite gives back."""
         if not len(stored):
             return
-        self._batches.append(MeasurementBatch.of_arrays(
-            stored.ids, stored.sources, stored.steps, stored.times, stored.features,
-            stored.levels, stored.sinr_db))
-        self._rows += len(stored)
+        batch = MeasurementBatch.of_arrays(stored.ids, stored.sources, stored.steps,
+                                           stored.times, stored.features, stored.levels,
+                                           stored.sinr_db)
+        self._batches.append((batch, float(batch.times.min()), float(batch.times.max())))
+        self._rows += len(batch)
         while self._rows > self.kept:
-            oldest = self._batches.popleft()
+            oldest, _, latest = self._batches.popleft()
             self._rows -= len(oldest)
-            self.older_taken_by = max(self.older_taken_by, float(oldest.times.max()))
+            self.older_taken_by = max(self.older_taken_by, latest)
 
     def holds_since(self, time: float) -> bool:
         return time > self.older_taken_by
 
     def since(self, time: float, feature_size: int) -> MeasurementBatch:
-        taken = [batch.take(batch.times >= time) for batch in self._batches
-                 if batch.times.max() >= time]
+        taken = [batch if earliest >= time else batch.take(batch.times >= time)
+                 for batch, earliest, latest in self._batches if latest >= time]
         return (MeasurementBatch.concatenate(taken) if taken
                 else MeasurementBatch.empty(feature_size))

@@ -17,7 +17,7 @@ cdef extern from *:
     """
     const char *PLANNING_SOURCE_DIGEST
 
-from libc.math cimport isfinite, rint
+from libc.math cimport fabs, isfinite, rint
 
 import numpy as np
 
@@ -51,11 +51,12 @@ def add_table_entries(const int[:, ::1] first_entry, const int[::1] power_offset
                     sums[p] += entries[power_offsets[p]]
 
 
-cdef inline Py_ssize_t _entry(double position, double low, double step, Py_ssize_t count) noexcept nogil:
-    """numpy's ``clip(rint((position - low) / step).astype(int64), 0, count - 1)``, clipped
-    before the cast (the same for every position a table covers)."""
+cdef inline Py_ssize_t _entry(double position, double low, double step,
+                              Py_ssize_t count) noexcept nogil:
+    """numpy's ``clip(rint((position - low) / step).astype(int64), 0, count - 1)``: a value no
+    int64 holds (NaN among them) casts there to int64's least, and so clips to 0."""
     cdef double entry = rint((position - low) / step)
-    if entry < 0:
+    if not fabs(entry) < 9223372036854775808.0 or entry < 0:
         return 0
     if entry > count - 1:
         return count - 1
