@@ -268,10 +268,10 @@ class SinrMemory:
 class RecentRows:
     """The rows a memory stored most recently, at most ``kept`` of them, in arrival order: all
     the rows taken at or after a time, as SQLite would give them back, when every row taken
-    that late is among them. A row is stored after it is taken, so a row older than these was
-    taken no later than the latest time of the rows held before them (``older_taken_by``,
-    from the memory's newest row when it opened): later times are all here. The memory deletes
-    only rows beyond its capacity, and ``kept`` is at most that: every row here is stored."""
+    that late is among them. Every stored row not here was taken no later than
+    ``older_taken_by``, the latest time of the rows that left and of the memory's rows when it
+    opened: the rows taken later are all here. The memory deletes only rows beyond its
+    capacity, and ``kept`` is at most that: every row here is stored."""
 
     def __init__(self, kept: int, older_taken_by: float | None):
         self.kept = kept
