@@ -1,8 +1,8 @@
 """The cloud's two costly pieces of work on a change, compiled against their references in one
 run: a jammer estimate from 4,000 uploads (the uploads' report tables and the search's sums;
-numpy's gathers are the reference) and a refit of the SINR map on them and the prior, the scenario's 1,000 steps
-(torch's step is the reference), with the refit map's held-out accuracy either way. Each is the
-best of 3, on icc2021 with a 1 W jammer."""
+numpy's gathers are the reference) and a refit of the SINR map on them and the prior, the
+scenario's 1,000 steps (torch's step is the reference), with the refit map's held-out accuracy
+either way. Each is the best of 3, on icc2021 with a 1 W jammer."""
 
 from __future__ import annotations
 
