@@ -62,7 +62,7 @@ def run_settings(scenario: Scenario, config: TrainConfig) -> dict[str, Any]:
     content = json.dumps(scenario.model_dump(mode="json"), sort_keys=True)
     return {"--scenario": f"{scenario.name} [sha256 {sha256(content.encode())[:12]}]",
             "--method": config.method, "--seed": config.seed,
-            "--uavs": config.uav_count(scenario)}
+            "--uavs": config.uav_count(scenario), "--final-lr": config.final_learning_rate}
 
 
 # What progress.json must hold for a run to continue from it.

@@ -3,6 +3,7 @@ paper's hyperparameters, how long and how wide the run flies, and how it checkpo
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from shared.scenario import Scenario
@@ -24,6 +25,10 @@ class TrainConfig:
     threads: int = 1  # torch threads: on 2 cores one thread beats two fighting the world
     batch_size: int = 200  # paper
     learning_rate: float = 1e-3  # paper
+    # None: the paper's constant rate. A rate: the rate falls to it along half a cosine over
+    # the run, so that the last checkpoints' weights settle instead of swinging by points of
+    # validation from one to the next (BENCHMARKS.md, "The compiled training step").
+    final_learning_rate: float | None = None
     weight_decay: float = 1e-4  # paper: L2 regularization
     epsilon_start: float = 0.5  # paper
     epsilon_end: float = 0.1  # paper
@@ -44,6 +49,14 @@ class TrainConfig:
         if self.memory_capacity is not None:
             return self.memory_capacity
         return 30_000 if uavs <= 2 else 100_000
+
+    def learning_rate_at(self, episode: int) -> float:
+        """The rate of the updates after ``episode`` episodes (see ``final_learning_rate``)."""
+        if self.final_learning_rate is None:
+            return self.learning_rate
+        share = min(1.0, episode / max(1, self.episodes))
+        return self.final_learning_rate + 0.5 * (self.learning_rate - self.final_learning_rate) * (
+            1.0 + math.cos(math.pi * share))
 
     def epsilon_at(self, episode: int) -> float:
         """Exploration after ``episode`` episodes: linear from start to end over the first

@@ -103,10 +103,12 @@ class Learner:
         if missions:
             self.memory.push(*td_targets(self.target, missions, gamma, device))
 
-    def learn(self, rng: np.random.Generator, config: TrainConfig) -> None:
-        """The mini-batch steps after an episode, once D holds a batch."""
+    def learn(self, rng: np.random.Generator, config: TrainConfig, episode: int) -> None:
+        """The mini-batch steps after ``episode`` episodes, once D holds a batch, at that
+        episode's learning rate."""
         if self.memory.size < config.batch_size:
             return
+        self.optimizer.param_groups[0]["lr"] = config.learning_rate_at(episode)
         self.step = adam_step(self.net, self.optimizer, self.step)
         for _ in range(config.updates_per_episode):
             self.step(*self.memory.sample(rng, config.batch_size))

@@ -250,7 +250,7 @@ class TdLearning:
         self.progress.episodes_done += 1
         done, config = self.progress.episodes_done, self.config
         self.controller.epsilon = config.epsilon_at(done)
-        self.learner.learn(self.rng, config)
+        self.learner.learn(self.rng, config, done)
         # The lookahead takes the updated numpy form (off the CPU it is a copy), reading the
         # weights that decay has left subnormal as zeros: the same values, without the cost
         # some CPUs put on them (``Network.read_subnormals_as_zero``).

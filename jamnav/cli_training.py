@@ -86,8 +86,12 @@ def cmd_train(args: argparse.Namespace) -> int:
     check_range("--seed", args.seed, 0, SEED_MAX)
     _check_device(args.device)
     out = output_path("--out", args.out, directory=True)
+    if args.final_lr is not None and not 0 < args.final_lr <= TrainConfig.learning_rate:
+        raise UsageError(f"--final-lr {args.final_lr:g}: expected a rate above 0 and at most "
+                         f"the starting rate, {TrainConfig.learning_rate:g}")
     config = TrainConfig(episodes=args.episodes, envs=args.envs, uavs=args.uavs,
-                         seed=args.seed, device=args.device, method=args.method)
+                         seed=args.seed, device=args.device, method=args.method,
+                         final_learning_rate=args.final_lr)
     _check_checkpoint(out, scenario, config, args.resume)
     bar = ProgressBar("train", args.episodes)
     validated = ""
@@ -180,6 +184,9 @@ def add_train_command(commands) -> None:
                           help="continue the run in DIR/checkpoint, with the settings it was "
                                "made with and more --episodes")
     training.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
+    training.add_argument("--final-lr", type=float, default=None, metavar="RATE",
+                          help="let the learning rate fall along half a cosine to RATE by the "
+                               "run's end (default: the paper's constant 0.001)")
     training.add_argument(
         "--method", choices=("paper", "extended"), default="paper",
         help="paper: the paper's joint state; extended: adds disconnection memory and the "

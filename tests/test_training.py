@@ -122,8 +122,43 @@ def test_train_help_states_the_defaults_and_bounds(capsys):
     assert exit_info.value.code == 0
     text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines anywhere
     for stated in ("(default 20000)", "(default runs/train)", f"at most {MAX_ENVS}",
-                   "cpu (default), cuda or cuda:N"):
+                   "cpu (default), cuda or cuda:N", "the paper's constant 0.001"):
         assert stated in text, stated
+
+
+def test_the_learning_rate_falls_along_half_a_cosine_only_when_asked():
+    constant = TrainConfig(episodes=1000)
+    assert {constant.learning_rate_at(e) for e in (0, 1, 500, 1000, 5000)} == {1e-3}
+    falling = TrainConfig(episodes=1000, final_learning_rate=1e-5)
+    # Hand-computed: the start, the middle (the mean of the two rates), a quarter in
+    # (1e-5 + 0.99e-3 (1 + cos(pi / 4)) / 2), the end, and held there past it.
+    assert falling.learning_rate_at(0) == pytest.approx(1e-3, rel=1e-12)
+    assert falling.learning_rate_at(500) == pytest.approx(5.05e-4, rel=1e-12)
+    assert falling.learning_rate_at(250) == pytest.approx(8.550178567e-4, rel=1e-9)
+    assert falling.learning_rate_at(1000) == falling.learning_rate_at(3000) == pytest.approx(
+        1e-5, rel=1e-12)
+    rates = [falling.learning_rate_at(e) for e in range(1001)]
+    assert all(later <= earlier for earlier, later in zip(rates, rates[1:]))
+
+
+def test_a_run_learns_at_the_rate_of_its_episode(scenario, tmp_path, monkeypatch):
+    """The updates after each episode run at that episode's rate, and a resumed run keeps the
+    schedule it was made with."""
+    seen = []
+    learn = value_training.Learner.learn
+
+    def watched(learner, rng, config, episode):
+        learn(learner, rng, config, episode)
+        seen.append((episode, learner.optimizer.param_groups[0]["lr"]))
+
+    monkeypatch.setattr(value_training.Learner, "learn", watched)
+    config = tiny(20, final_learning_rate=1e-5)
+    train(scenario, config, tmp_path)
+    assert [episode for episode, _ in seen] == list(range(1, 21))
+    assert all(rate == config.learning_rate_at(episode) for episode, rate in seen)
+    assert seen[-1][1] == pytest.approx(1e-5)
+    with pytest.raises(ValueError, match="--final-lr"):
+        train(scenario, tiny(40, final_learning_rate=1e-4), tmp_path, resume=True)
 
 
 def card_sha(out):
