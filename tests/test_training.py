@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import os
 import platform
@@ -138,7 +139,7 @@ def test_the_learning_rate_falls_along_half_a_cosine_only_when_asked():
     assert falling.learning_rate_at(1000) == falling.learning_rate_at(3000) == pytest.approx(
         1e-5, rel=1e-12)
     rates = [falling.learning_rate_at(e) for e in range(1001)]
-    assert all(later <= earlier for earlier, later in zip(rates, rates[1:]))
+    assert all(later <= earlier for earlier, later in itertools.pairwise(rates))
 
 
 def test_a_run_learns_at_the_rate_of_its_episode(scenario, tmp_path, monkeypatch):
