@@ -60,9 +60,12 @@ def run_settings(scenario: Scenario, config: TrainConfig) -> dict[str, Any]:
     network that no run made. The scenario counts by its content (a value network learns its
     missions, rewards and planning values as much as its radio), whatever it is called."""
     content = json.dumps(scenario.model_dump(mode="json"), sort_keys=True)
+    falling = config.final_learning_rate is not None
     return {"--scenario": f"{scenario.name} [sha256 {sha256(content.encode())[:12]}]",
             "--method": config.method, "--seed": config.seed,
-            "--uavs": config.uav_count(scenario), "--final-lr": config.final_learning_rate}
+            "--uavs": config.uav_count(scenario), "--final-lr": config.final_learning_rate,
+            # A falling rate falls over the run's episodes: more of them would raise it again.
+            "--episodes": config.episodes if falling else None}
 
 
 # What progress.json must hold for a run to continue from it.

@@ -160,6 +160,8 @@ def test_a_run_learns_at_the_rate_of_its_episode(scenario, tmp_path, monkeypatch
     assert seen[-1][1] == pytest.approx(1e-5)
     with pytest.raises(ValueError, match="--final-lr"):
         train(scenario, tiny(40, final_learning_rate=1e-4), tmp_path, resume=True)
+    with pytest.raises(ValueError, match="--episodes 20 \\(not 40\\)"):
+        train(scenario, tiny(40, final_learning_rate=1e-5), tmp_path, resume=True)
 
 
 def card_sha(out):
