@@ -122,18 +122,20 @@ class SinrMemory:
         screened = [self.spec.screen(batch) if isinstance(batch, MeasurementBatch)
                     else self.spec.from_records(batch) for batch in uploads]
         rejected = sum((counts for _, counts in screened), Counter())
-        with self._lock, self._db:
-            if rejected:
-                self._db.executemany(
-                    "INSERT INTO rejected VALUES (?, ?) "
-                    "ON CONFLICT(reason) DO UPDATE SET count = count + excluded.count",
-                    rejected.items(),
-                )
-            stored = [self._insert(batch) for batch, _ in screened]
-            if any(len(new) for new, _ in stored):
-                self._db.execute(
-                    "DELETE FROM measurements WHERE seq <= (SELECT MAX(seq) FROM measurements)"
-                    " - ?", (self.capacity,))
+        with self._lock:
+            with self._db:
+                if rejected:
+                    self._db.executemany(
+                        "INSERT INTO rejected VALUES (?, ?) "
+                        "ON CONFLICT(reason) DO UPDATE SET count = count + excluded.count",
+                        rejected.items(),
+                    )
+                stored = [self._insert(batch) for batch, _ in screened]
+                if any(len(new) for new, _ in stored):
+                    self._db.execute(
+                        "DELETE FROM measurements WHERE seq <= (SELECT MAX(seq) FROM "
+                        "measurements) - ?", (self.capacity,))
+            # Once committed: a transaction that fails leaves none of its rows here either.
             for new, _ in stored:
                 self._recent.add(new)
         return stored

@@ -132,12 +132,14 @@ def test_the_learning_rate_falls_along_half_a_cosine_only_when_asked():
     assert {constant.learning_rate_at(e) for e in (0, 1, 500, 1000, 5000)} == {1e-3}
     falling = TrainConfig(episodes=1000, final_learning_rate=1e-5)
     # Hand-computed: the start, the middle (the mean of the two rates), a quarter in
-    # (1e-5 + 0.99e-3 (1 + cos(pi / 4)) / 2), the end, and held there past it.
+    # (1e-5 + 0.99e-3 (1 + cos(pi / 4)) / 2), the end, and held there past it. The rates are
+    # float64: a cos, a multiply and two adds leave a few units of 2^-52 (1e-15 relative), so
+    # rel 1e-12 is far above rounding and far below any wrong formula; the quarter's value is
+    # written to 10 digits, hence rel 1e-9. At the end cos(pi) is -1 exactly: the rate is exact.
     assert falling.learning_rate_at(0) == pytest.approx(1e-3, rel=1e-12)
     assert falling.learning_rate_at(500) == pytest.approx(5.05e-4, rel=1e-12)
     assert falling.learning_rate_at(250) == pytest.approx(8.550178567e-4, rel=1e-9)
-    assert falling.learning_rate_at(1000) == falling.learning_rate_at(3000) == pytest.approx(
-        1e-5, rel=1e-12)
+    assert falling.learning_rate_at(1000) == falling.learning_rate_at(3000) == 1e-5
     rates = [falling.learning_rate_at(e) for e in range(1001)]
     assert all(later <= earlier for earlier, later in itertools.pairwise(rates))
 
@@ -157,7 +159,7 @@ def test_a_run_learns_at_the_rate_of_its_episode(scenario, tmp_path, monkeypatch
     train(scenario, config, tmp_path)
     assert [episode for episode, _ in seen] == list(range(1, 21))
     assert all(rate == config.learning_rate_at(episode) for episode, rate in seen)
-    assert seen[-1][1] == pytest.approx(1e-5)
+    assert seen[-1][1] == 1e-5  # the run's last episode: cos(pi) = -1 exactly
     with pytest.raises(ValueError, match="--final-lr"):
         train(scenario, tiny(40, final_learning_rate=1e-4), tmp_path, resume=True)
     with pytest.raises(ValueError, match="--episodes 20 \\(not 40\\)"):
