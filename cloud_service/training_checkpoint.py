@@ -68,6 +68,11 @@ def run_settings(scenario: Scenario, config: TrainConfig) -> dict[str, Any]:
             "--episodes": config.episodes if falling else None}
 
 
+def _shown(option: str, value: Any) -> Any:
+    """A setting as the option that sets it is written."""
+    return "constant" if option == "--final-lr" and value is None else value
+
+
 # What progress.json must hold for a run to continue from it.
 PROGRESS_FIELDS = {"episodes_done": int, "next_episode": int, "wall_seconds": (int, float),
                    "decisions": int, "td_seconds": (int, float), "orca": dict,
@@ -197,7 +202,8 @@ class Checkpoint:
             differing = [option for option in asked if saved.get(option) != asked[option]]
             if differing:
                 raise CheckpointError(f"the checkpoint in {self.dir} was made with " + ", ".join(
-                    f"{option} {saved.get(option)} (not {asked[option]})"
+                    f"{option} {_shown(option, saved.get(option))} "
+                    f"(not {_shown(option, asked[option])})"
                     for option in differing))
         if not isinstance(progress.get("checkpoint_scores"), list):
             raise CheckpointError(f"{path} has no checkpoint scores (written by an older "

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -74,6 +75,25 @@ def _check_checkpoint(out: Path, scenario: Scenario, config: TrainConfig, resume
                          f"remove {checkpoint.root} or choose another --out")
 
 
+def _final_rate(text: str | None, method: str) -> float | None:
+    """--final-lr as TrainConfig takes it: a rate, None for the constant rate, or the
+    method's default when not given."""
+    from cloud_service.training_config import DEFAULT_FINAL_LEARNING_RATE, TrainConfig
+
+    if text is None:
+        return DEFAULT_FINAL_LEARNING_RATE[method]
+    if text == "constant":
+        return None
+    try:
+        rate = float(text)
+    except ValueError:
+        rate = math.nan
+    if not 0 < rate <= TrainConfig.learning_rate:
+        raise UsageError(f"--final-lr {text}: expected 'constant' or a rate above 0 and at "
+                         f"most the starting rate, {TrainConfig.learning_rate:g}")
+    return rate
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from cloud_service.training_config import MAX_ENVS, TrainConfig
     from cloud_service.value_training import train
@@ -86,12 +106,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     check_range("--seed", args.seed, 0, SEED_MAX)
     _check_device(args.device)
     out = output_path("--out", args.out, directory=True)
-    if args.final_lr is not None and not 0 < args.final_lr <= TrainConfig.learning_rate:
-        raise UsageError(f"--final-lr {args.final_lr:g}: expected a rate above 0 and at most "
-                         f"the starting rate, {TrainConfig.learning_rate:g}")
     config = TrainConfig(episodes=args.episodes, envs=args.envs, uavs=args.uavs,
                          seed=args.seed, device=args.device, method=args.method,
-                         final_learning_rate=args.final_lr)
+                         final_learning_rate=_final_rate(args.final_lr, args.method))
     _check_checkpoint(out, scenario, config, args.resume)
     bar = ProgressBar("train", args.episodes)
     validated = ""
@@ -184,9 +201,11 @@ def add_train_command(commands) -> None:
                           help="continue the run in DIR/checkpoint, with the settings it was "
                                "made with and more --episodes")
     training.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
-    training.add_argument("--final-lr", type=float, default=None, metavar="RATE",
+    training.add_argument("--final-lr", default=None, metavar="RATE",
                           help="let the learning rate fall along half a cosine to RATE by the "
-                               "run's end (default: the paper's constant 0.001)")
+                               "run's end, or keep it at the paper's 0.001 ('constant'); "
+                               "default: 1e-5 for the extended method, constant for the "
+                               "paper's")
     training.add_argument(
         "--method", choices=("paper", "extended"), default="paper",
         help="paper: the paper's joint state; extended: adds disconnection memory and the "

@@ -129,6 +129,7 @@ CASES = [
     (["train", "--final-lr", "0", "--out", "{tmp}/r"], 2),
     (["train", "--final-lr", "0.01", "--out", "{tmp}/r"], 2),
     (["train", "--final-lr", "nan", "--out", "{tmp}/r"], 2),
+    (["train", "--final-lr", "falling", "--out", "{tmp}/r"], 2),
     (["train", "--out", "{file}"], 2),
     (["train", "--out", "{file}/sub"], 2),
     (["train", "--resume", "--out", "{tmp}/r"], 2),

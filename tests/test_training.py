@@ -123,8 +123,28 @@ def test_train_help_states_the_defaults_and_bounds(capsys):
     assert exit_info.value.code == 0
     text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines anywhere
     for stated in ("(default 20000)", "(default runs/train)", f"at most {MAX_ENVS}",
-                   "cpu (default), cuda or cuda:N", "the paper's constant 0.001"):
+                   "cpu (default), cuda or cuda:N",
+                   "default: 1e-5 for the extended method, constant for the paper's"):
         assert stated in text, stated
+
+
+@pytest.mark.parametrize("options, final_rate", [
+    (["--method", "extended"], 1e-5),
+    ([], None),  # the paper's method: the paper's constant rate
+    (["--method", "extended", "--final-lr", "constant"], None),
+    (["--final-lr", "2e-4"], 2e-4),
+])
+def test_each_method_has_its_default_schedule(tmp_path, monkeypatch, options, final_rate):
+    class Reached(Exception):
+        pass
+
+    def trap(_scenario, config, *_args, **_kwargs):
+        raise Reached(config.final_learning_rate)
+
+    monkeypatch.setattr(value_training, "train", trap)
+    with pytest.raises(Reached) as reached:
+        main(["train", "--episodes", "2", "--out", str(tmp_path / "run"), *options])
+    assert reached.value.args == (final_rate,)
 
 
 def test_the_learning_rate_falls_along_half_a_cosine_only_when_asked():
@@ -160,8 +180,10 @@ def test_a_run_learns_at_the_rate_of_its_episode(scenario, tmp_path, monkeypatch
     assert [episode for episode, _ in seen] == list(range(1, 21))
     assert all(rate == config.learning_rate_at(episode) for episode, rate in seen)
     assert seen[-1][1] == 1e-5  # the run's last episode: cos(pi) = -1 exactly
-    with pytest.raises(ValueError, match="--final-lr"):
+    with pytest.raises(ValueError, match="--final-lr 1e-05 \\(not 0.0001\\)"):
         train(scenario, tiny(40, final_learning_rate=1e-4), tmp_path, resume=True)
+    with pytest.raises(ValueError, match="--final-lr 1e-05 \\(not constant\\)"):
+        train(scenario, tiny(40), tmp_path, resume=True)
     with pytest.raises(ValueError, match="--episodes 20 \\(not 40\\)"):
         train(scenario, tiny(40, final_learning_rate=1e-5), tmp_path, resume=True)
 
