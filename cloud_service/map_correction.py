@@ -116,6 +116,12 @@ def sinr_report_probabilities(
     return (1.0 - OUTLIER_SHARE) * total + outlier
 
 
+def jammer_loss_db(scenario: Scenario, estimate: JammerEstimate, xy: np.ndarray) -> np.ndarray:
+    """What the ideal model says a present ``estimate`` (each jammer of its set) takes off the
+    SINR at points ``xy`` (n, 2), in dB."""
+    return _IdealLosses(scenario, xy).loss_db(estimate)
+
+
 def ideal_model_spread_db(scenario: Scenario, survey_sigma_db: float) -> float | None:
     """How far a report may lie from the ideal model's SINR where the survey map agrees with
     that model: the survey map's fitted departure from it (``fit_shadowing_sigma``) and the

@@ -36,9 +36,10 @@ from cloud_service.jammer_withdrawal import (
     WithdrawalTest,
     withdrawal_evidence,
 )
-from cloud_service.map_correction import corrected_levels
+from cloud_service.map_correction import corrected_levels, jammer_loss_db
 from cloud_service.map_refit import prior_positions, refit_network
 from cloud_service.mapper_outputs import IngestReport, PublishedWeights
+from cloud_service.no_jammer_belief import sinr_beliefs
 from cloud_service.report_models import ReportModels
 from cloud_service.sinr_memory import SinrMemory, Uploads
 from cloud_service.sinr_reference import SinrReference
@@ -46,6 +47,7 @@ from cloud_service.upload_positions import positions_from_features
 from planning.maps import MAP_SPACING_M, LevelRaster, sinr_network_raster
 from planning.networks import SinrMapNetwork, predict_probabilities, sha256, to_bytes
 from shared.measurements import MeasurementBatch
+from shared.radio import RadioModel
 from shared.scenario import Scenario
 
 if TYPE_CHECKING:
@@ -159,6 +161,8 @@ class OnlineSinrMapper:
         self._inputs = EstimateInputs(self.report_models, self.reference, memory)
         self._resume(estimate, refining_since)
         self._rebuild_reference(refining_since, changed_since)
+        if estimate is not None and estimate.present:
+            self._forget_reference_under(estimate)
 
     def _resume(self, estimate: JammerEstimate | None, refining_since: float | None) -> None:
         """Take over a map in service corrected with ``estimate`` (None: an uncorrected one)
@@ -190,6 +194,22 @@ class OnlineSinrMapper:
         newest = self.memory.newest_time()
         if newest is not None:
             self.reference.commit(newest)
+
+    def _forget_reference_under(self, estimate: JammerEstimate) -> None:
+        """Drop from the reference the reports that carry the loss of ``estimate``: where it
+        takes ``detection_shift_db`` or more off the SINR, those nearer the survey map's
+        no-jammer SINR less that loss than the SINR itself. Such a jammer was there, unseen,
+        when they were taken (``SinrReference``); the others, taken before it came, are what
+        its estimate reads best."""
+        shift_db = self.scenario.online_map.detection_shift_db
+        ideal = RadioModel(self.scenario, shadowed=False)
+
+        def jammed(xy: np.ndarray, sinr_db: np.ndarray) -> np.ndarray:
+            loss_db = jammer_loss_db(self.scenario, estimate, xy)
+            survey = sinr_beliefs(ideal, xy, self.report_models.no_jammer_probabilities(xy))
+            return (loss_db >= shift_db) & (sinr_db < survey.mean_db - loss_db / 2.0)
+
+        self.reference.discard_jammed(jammed)
 
     @property
     def version(self) -> int:
@@ -530,6 +550,8 @@ class OnlineSinrMapper:
                                            None if estimate is None else change.start,
                                            provisional)
             self.estimate = estimate
+            if estimate is not None:
+                self._forget_reference_under(estimate)
             self._watch = CorrectionWatch.of(self.scenario, jammer, prior.shadowing_sigma_db,
                                              prior.withdrawal)
             self._correction_change = change

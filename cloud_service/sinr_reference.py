@@ -30,11 +30,18 @@ answered by a provisional map or by the DNN alone, or not answered yet when the 
 leaves no start behind, and the reports taken since it enter. Reports taken after a jammer's
 withdrawal, which entered live, are left out with those taken while it was believed: the rule
 reads no more of the cards than when changes began, and those cells refill as UAVs fly them.
+Nor can the rule tell when a jammer began that the detector caught late: the reports its zone
+gave the reference before, already jammed, would vouch against it, and the reports under it
+would look like no loss at all, withdrawing every map corrected for it. So a cell where the
+jammer the cloud corrects for takes ``detection_shift_db`` or more off the SINR is emptied
+(``discard_jammed``) whenever a map corrected for it goes into service, and after a restart
+onto one; it refills once no jammer is believed.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -95,6 +102,24 @@ class SinrReference:
         """Drop the pending reports taken at or after ``start``: a change began then."""
         self._pending = [(cells[times < start], sinr_db[times < start], times[times < start])
                          for cells, sinr_db, times in self._pending]
+
+    def discard_jammed(self, jammed: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> None:
+        """Drop what ``jammed(xy, sinr_db)`` (points (n, 2), the SINR measured there (n,))
+        says a jammer had lowered: each cell's reports, judged by their mean at the cell's
+        centre, and each report waiting to enter, by its own SINR at its cell's centre."""
+        rows, cols = np.indices(self.shape)
+        centres = self.origin + (np.stack([cols, rows], axis=-1) + 0.5) * self.cell_m
+        held = self.counts > 0
+        if held.any():
+            cells = np.zeros(self.shape, dtype=bool)
+            cells[held] = jammed(centres[held], self.sums[held] / self.counts[held])
+            self.sums[cells] = self.squares[cells] = 0.0
+            self.counts[cells] = 0
+        if self._pending:  # judged at once, kept in the order they were offered
+            pending_cells, sinr_db, times = (np.concatenate(part)
+                                             for part in zip(*self._pending, strict=True))
+            keep = ~jammed(centres[pending_cells[:, 0], pending_cells[:, 1]], sinr_db)
+            self._pending = [(pending_cells[keep], sinr_db[keep], times[keep])]
 
     @property
     def reports(self) -> int:

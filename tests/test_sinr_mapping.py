@@ -892,6 +892,42 @@ def test_a_restarted_reference_leaves_out_the_reports_since_a_change_began(
     restarted.close()
 
 
+@pytest.mark.parametrize("jammed_from_the_start", [True, False])
+def test_a_map_corrected_for_a_jammer_empties_the_reference_cells_that_hold_its_loss(
+        db_reporting, no_jammer_map, tmp_path, jammed_from_the_start):
+    """25 s of dB reports, all before the change the resumed map was corrected for (its card's
+    ``refining_since``, 30 s): taken under that jammer, present from the start and unseen, the
+    cells where it takes 1.5 dB or more off the SINR (at the cell's centre) are emptied, those
+    where it takes under the detector's 1 dB shift kept; taken before the jammer came, no cell
+    is emptied."""
+    network, accuracy = no_jammer_map
+    path = tmp_path / "memory.sqlite"
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-45.0, 45.0, (3000, 2))
+    ideal = RadioModel(db_reporting, shadowed=False)
+    jammer = jammer_params(db_reporting, TABLE_I_JAMMERS[0])
+    sinr_db = ideal.evaluate(xy, jammer if jammed_from_the_start else None).sinr_db
+    stored = _db_reports(db_reporting, xy, np.linspace(0.0, 25.0, len(xy)),
+                         np.round(sinr_db * 2.0) / 2.0, seed=6)
+    with SinrMemory(path, MeasurementSpec.of(db_reporting)) as memory:
+        memory.append(stored)
+    restarted, _ = _online(db_reporting, network, accuracy, memory=path, background=False,
+                           refining_since=30.0, estimate=_believed(TABLE_I_JAMMERS[0]))
+    restarted.reference.commit(math.inf)
+    cells = _cells(restarted.reference, positions_from_features(db_reporting, stored.features))
+    kept = restarted.reference.counts[tuple(cells.T)] > 0
+    # The jammer's loss at the centre of each report's cell, which the cell is judged by.
+    centres = restarted.reference.origin + (cells[:, ::-1] + 0.5) * restarted.reference.cell_m
+    loss_db = ideal.evaluate(centres).sinr_db - ideal.evaluate(centres, jammer).sinr_db
+    shift_db = db_reporting.online_map.detection_shift_db
+    assert (loss_db >= 1.5).sum() > 100 and (loss_db < shift_db).sum() > 100
+    if jammed_from_the_start:
+        assert kept[loss_db < shift_db].all() and not kept[loss_db >= 1.5].any()
+    else:
+        assert kept.all()
+    restarted.close()
+
+
 def test_a_memory_of_level_reports_gives_an_empty_reference(db_reporting, no_jammer_map,
                                                              tmp_path):
     network, accuracy = no_jammer_map

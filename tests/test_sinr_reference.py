@@ -62,6 +62,33 @@ def test_a_change_drops_the_reports_still_waiting_since_it_began(reporting):
     assert reference.at(spot).mean_db[0] == pytest.approx(np.mean(np.arange(12.0)), abs=1e-12)
 
 
+def test_the_reports_judged_jammed_leave_the_reference_and_the_queue_to_enter_it(reporting):
+    """Cells are judged by their mean at their centre, waiting reports by their own SINR at
+    their cell's centre; the rest stays, the waiting ones in the order they were offered."""
+    reference = SinrReference(reporting)
+    spots = np.array([[5.5, 5.5], [-20.5, 30.5], [5.5, 5.5], [-20.5, 30.5]])
+    reference.offer(spots[:2], np.array([1.0, 2.0]), np.array([0.0, 0.0]))
+    reference.commit(10.0)
+    reference.offer(spots, np.array([-8.0, 4.0, 5.0, -6.0]), np.array([5.0, 5.0, 5.0, 6.0]))
+    judged = []
+
+    def jammed(xy, sinr_db):
+        judged.append((xy.copy(), sinr_db.copy()))
+        return (xy[:, 0] > 0.0) | (sinr_db < -5.0)  # east of x = 0, or below -5 dB
+
+    reference.discard_jammed(jammed)
+    (cells_xy, means), (waiting_xy, waiting_db) = judged
+    np.testing.assert_allclose(cells_xy, [[5.5, 5.5], [-20.5, 30.5]], atol=1e-12)
+    np.testing.assert_allclose(means, [1.0, 2.0], atol=1e-12)
+    np.testing.assert_allclose(waiting_xy, spots, atol=1e-12)
+    np.testing.assert_allclose(waiting_db, [-8.0, 4.0, 5.0, -6.0], atol=1e-12)
+    assert reference.reports == 1
+    reference.commit(100.0)
+    belief = reference.at(spots[:2])
+    assert np.isnan(belief.mean_db[0]) and reference.reports == 2
+    assert belief.mean_db[1] == pytest.approx(3.0, abs=1e-12)  # (2 + 4) / 2
+
+
 def test_shift_evidence_is_the_gaussian_log_likelihood_ratio_capped_for_outliers():
     reference = SinrBelief(np.array([0.0, 0.0, 0.0, np.nan]), np.array([0.5, 0.5, 0.5, 0.5]))
     reported = np.array([-1.0, 1.0, -40.0, 0.0])
