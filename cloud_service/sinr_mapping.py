@@ -550,7 +550,7 @@ class OnlineSinrMapper:
                                            None if estimate is None else change.start,
                                            provisional)
             self.estimate = estimate
-            if estimate is not None:
+            if estimate is not None and estimate.present:
                 self._forget_reference_under(estimate)
             self._watch = CorrectionWatch.of(self.scenario, jammer, prior.shadowing_sigma_db,
                                              prior.withdrawal)

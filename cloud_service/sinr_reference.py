@@ -32,10 +32,11 @@ withdrawal, which entered live, are left out with those taken while it was belie
 reads no more of the cards than when changes began, and those cells refill as UAVs fly them.
 Nor can the rule tell when a jammer began that the detector caught late: the reports its zone
 gave the reference before, already jammed, would vouch against it, and the reports under it
-would look like no loss at all, withdrawing every map corrected for it. So a cell where the
-jammer the cloud corrects for takes ``detection_shift_db`` or more off the SINR is emptied
-(``discard_jammed``) whenever a map corrected for it goes into service, and after a restart
-onto one; it refills once no jammer is believed.
+would look like no loss at all, withdrawing every map corrected for it. So whenever a map
+corrected for a jammer goes into service, and after a restart onto one, the reports that hold
+its loss leave the reference (``discard_jammed``, judged by the mapper): where it takes
+``detection_shift_db`` or more off the SINR, those nearer the survey map's no-jammer SINR less
+that loss than the SINR itself. Those cells refill once no jammer is believed.
 """
 
 from __future__ import annotations
