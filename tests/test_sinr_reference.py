@@ -77,6 +77,8 @@ def test_the_reports_judged_jammed_leave_the_reference_and_the_queue_to_enter_it
         return (xy[:, 0] > 0.0) | (sinr_db < -5.0)  # east of x = 0, or below -5 dB
 
     reference.discard_jammed(jammed)
+    # Every value below is a whole or half number, exact in float64 through these sums and
+    # one division by a count: the tolerances only spare an exact comparison.
     (cells_xy, means), (waiting_xy, waiting_db) = judged
     np.testing.assert_allclose(cells_xy, [[5.5, 5.5], [-20.5, 30.5]], atol=1e-12)
     np.testing.assert_allclose(means, [1.0, 2.0], atol=1e-12)
