@@ -22,6 +22,11 @@ from shared.scenario import Scenario
 ACCELERATION_SD_MPS2 = 0.2
 # A window's estimate is never trusted to better than this (m): the search's fine grid.
 MIN_POSITION_SD_M = 0.5
+# A window's estimate this far from where the track predicts the jammer, as a squared
+# Mahalanobis distance over the two of them (chi-square, 2 degrees of freedom: 1 in 1,000 of a
+# tracked jammer's windows lie farther), is another jammer or the same one moved at a jump (a
+# convoy's drive restarted): the track starts again from it instead of averaging the two.
+RESTART_DISTANCE_SQ = 13.8
 WINDOW_S = 5.0  # the uploads each estimate reads: a jammer at 5 m/s moves 25 m in it
 # Windows far behind the newest upload say where the jammer was, not where it is: the cloud's
 # tracker, fallen behind (restarted, or busy with its estimates and fits), takes up at most
@@ -54,24 +59,33 @@ class JammerTrack:
         self.state = np.zeros(4)
         self.covariance = np.zeros((4, 4))
         self.power_w = 0.0
+        self.updates = 0  # estimates taken since the track (re)started
 
     def update(self, t: float, estimate: JammerEstimate) -> TrackedJammer:
-        """Take a present ``estimate`` of the jammer's position at time ``t``."""
+        """Take a present ``estimate`` of the jammer's position at time ``t``; one too far
+        from the prediction (``RESTART_DISTANCE_SQ``) starts the track again."""
         measured = np.array([estimate.x, estimate.y])
         cov_xy = estimate.cov_xy_m2 or 0.0
         noise = np.array([[max(estimate.sd_x_m, MIN_POSITION_SD_M) ** 2, cov_xy],
                           [cov_xy, max(estimate.sd_y_m, MIN_POSITION_SD_M) ** 2]])
+        if self.t is not None:
+            self._predict(t - self.t)
+            innovation = measured - self.state[:2]
+            spread = self.covariance[:2, :2] + noise
+            if innovation @ np.linalg.solve(spread, innovation) > RESTART_DISTANCE_SQ:
+                self.t = None
         if self.t is None:  # the first: where it is; its velocity, any a vehicle may have
             self.state = np.concatenate([measured, [0.0, 0.0]])
             self.covariance = np.zeros((4, 4))
             self.covariance[:2, :2] = noise
             self.covariance[2:, 2:] = np.eye(2) * _UNKNOWN_SPEED_MPS**2
+            self.updates = 0
         else:
-            self._predict(t - self.t)
-            gain = self.covariance[:, :2] @ np.linalg.inv(self.covariance[:2, :2] + noise)
-            self.state = self.state + gain @ (measured - self.state[:2])
+            gain = self.covariance[:, :2] @ np.linalg.inv(spread)
+            self.state = self.state + gain @ innovation
             self.covariance = self.covariance - gain @ self.covariance[:2, :]
         self.t, self.power_w = t, float(estimate.power_w)
+        self.updates += 1
         return self.now()
 
     def _predict(self, dt: float) -> None:
@@ -128,7 +142,6 @@ class WindowedTracker:
         self.window_s = window_s
         self.next_start = start  # of the first window not estimated yet
         self.track = JammerTrack()
-        self.updates = 0
 
     def due(self, latest: float) -> bool:
         """Whether uploads up to ``latest`` complete a window not estimated yet."""
@@ -151,13 +164,12 @@ class WindowedTracker:
             estimate = estimate_window(start, end)
             if estimate is not None and estimate.present and not estimate.others:
                 out.append(self.track.update((start + end) / 2.0, estimate))
-                self.updates += 1
         return out
 
     def velocity(self) -> dict[str, float] | None:
         """The velocity and its sds as an estimate carries them, once two windows placed
-        the jammer (one alone says nothing of its motion)."""
-        if self.updates < 2:
+        the jammer since the track (re)started (one alone says nothing of its motion)."""
+        if self.track.updates < 2:
             return None
         now = self.track.now()
         return {"vx_mps": now.vx, "vy_mps": now.vy, "sd_vx_mps": now.sd_vx_mps,

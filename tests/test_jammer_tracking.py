@@ -39,6 +39,25 @@ def test_the_first_estimate_is_the_position_and_the_velocity_unknown():
     assert (first.sd_x_m, first.sd_vx_mps) == (2.0, 10.0)
 
 
+def test_a_jammer_that_jumps_starts_its_track_again():
+    """A convoy's drive restarted: 3 m/s east for six windows, then seen back at the west edge.
+    That estimate lies far outside the prediction (about 55 m off, its spread a few metres),
+    so the track starts from it, its velocity unknown again, and the tracker publishes none
+    until the next window places the jammer. (The straight-line tests above are the windows
+    taken in: a restart among them would lose the velocity they converge to.)"""
+    tracker = WindowedTracker(0.0, 5.0)
+    places = [(-40.0 + 15.0 * k, 5.0) for k in range(6)] + [(-47.5, 5.0)]
+    for k, (x, y) in enumerate(places):
+        tracker.follow(5.0 * (k + 1), lambda start, end, x=x, y=y: seen(x, y))
+        if k == 4:
+            assert tracker.velocity()["vx_mps"] == pytest.approx(3.0, abs=0.5)
+    restarted = tracker.track.now()
+    assert (restarted.x, restarted.y, restarted.vx, restarted.vy) == (-47.5, 5.0, 0.0, 0.0)
+    assert restarted.sd_vx_mps == 10.0 and tracker.velocity() is None
+    tracker.follow(40.0, lambda start, end: seen(-32.5, 5.0))
+    assert tracker.track.updates == 2 and tracker.velocity()["vx_mps"] > 0.0
+
+
 def test_a_jammer_driving_a_straight_line_is_tracked(scenario):
     """icc2021's exact receivers; a jammer drives from (-30, -10) east at 2 m/s for 40 s while
     300 reports a second fall anywhere in the area (their no-jammer levels known), read in
