@@ -224,6 +224,7 @@ def evaluate(
             {"from_episode": k, "jammers": described_jammers(schedule(k))}
             for k in range(0, episodes, swap_every)]
     report["outcomes"] = [[Outcome(code).label for code in row] for row in results.outcomes]
+    report["ended_at_step"] = results.ended_at.tolist()
     return report
 
 

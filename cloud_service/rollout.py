@@ -195,11 +195,12 @@ class EpisodeResults(NamedTuple):
     outcomes: np.ndarray  # (episodes, J) Outcome codes
     returns: np.ndarray  # (episodes, J) accumulated reward per UAV
     steps: np.ndarray  # (episodes,) steps until every UAV finished
+    ended_at: np.ndarray  # (episodes, J) the step at whose end each UAV's mission ended
 
 
 class EvaluationBook(EpisodeHooks):
-    """Evaluation's side of a flight: each episode's jammer, then its outcomes, returns and
-    steps."""
+    """Evaluation's side of a flight: each episode's jammer, then its outcomes, returns,
+    steps and the step each UAV's mission ended."""
 
     def __init__(
         self,
@@ -214,7 +215,8 @@ class EvaluationBook(EpisodeHooks):
         self.on_step, self.on_episode = on_step, on_episode
         self.results = EpisodeResults(np.zeros((episodes, world.num_uavs), dtype=np.int8),
                                       np.zeros((episodes, world.num_uavs)),
-                                      np.zeros(episodes, dtype=np.int64))
+                                      np.zeros(episodes, dtype=np.int64),
+                                      np.zeros((episodes, world.num_uavs), dtype=np.int64))
 
     def start(self, env: int, episode: int) -> None:
         self.world.set_jammers([env], self.jammer_at(episode))
@@ -225,6 +227,8 @@ class EvaluationBook(EpisodeHooks):
         if self.on_step is not None:
             self.on_step(self.world)
         self.results.returns[slot_episode[running]] += result.reward[running]
+        env, uav = np.nonzero(result.finished & running[:, None])
+        self.results.ended_at[slot_episode[env], uav] = self.world.steps[env]
 
     def end(self, env: int, episode: int) -> None:
         self.results.outcomes[episode] = self.world.status[env]

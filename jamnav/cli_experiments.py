@@ -110,7 +110,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     except EvaluationError as exc:
         raise UsageError(f"eval: {exc}") from None
     if not args.per_episode:
-        del report["outcomes"]
+        del report["outcomes"], report["ended_at_step"]
     if args.json:
         print(json.dumps(report))
     else:
@@ -370,7 +370,8 @@ def add_eval_command(commands) -> None:
     _add_online_map_options(evaluation)
     evaluation.add_argument("--json", action="store_true", help="print JSON")
     evaluation.add_argument("--per-episode", action="store_true",
-                            help="include each episode's per-UAV outcomes")
+                            help="include each episode's per-UAV outcomes and the step "
+                                 "at which each mission ended")
     evaluation.set_defaults(handler=cmd_eval)
 
 

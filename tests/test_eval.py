@@ -59,6 +59,13 @@ def test_rates_add_up_and_per_episode_is_reproducible(capsys):
     labels = {label for row in first["outcomes"] for label in row}
     assert labels <= {"success", "disconnection", "collision", "timeout"}
     assert (first["episodes"], first["uavs"], first["seed"]) == (12, 4, 3)
+    # Each mission's end: a timeout at the episode limit (60 s of 1 s steps), any other
+    # outcome within it.
+    assert first["ended_at_step"] == second["ended_at_step"]
+    for labels_row, ended_row in zip(first["outcomes"], first["ended_at_step"], strict=True):
+        for label, ended in zip(labels_row, ended_row, strict=True):
+            assert ended == 60 if label == "timeout" else 1 <= ended <= 60
+    assert "ended_at_step" not in run_json(capsys, *argv[:-1])
 
 
 def test_results_do_not_depend_on_how_many_environments_fly_at_once(scenario):
@@ -66,6 +73,9 @@ def test_results_do_not_depend_on_how_many_environments_fly_at_once(scenario):
     wide = run_episodes(scenario, StraightController(), 10, 7, jammer, num_envs=10)
     narrow = run_episodes(scenario, StraightController(), 10, 7, jammer, num_envs=3)
     np.testing.assert_array_equal(wide.outcomes, narrow.outcomes)
+    np.testing.assert_array_equal(wide.ended_at, narrow.ended_at)
+    # An episode lasts until its last mission ends.
+    np.testing.assert_array_equal(wide.ended_at.max(axis=1), wide.steps)
 
 
 def test_the_jammer_costs_straight_flights_missions(capsys):
