@@ -45,6 +45,8 @@ def test_a_jammer_that_jumps_starts_its_track_again():
     so the track starts from it, its velocity unknown again, and the tracker publishes none
     until the next window places the jammer. (The straight-line tests above are the windows
     taken in: a restart among them would lose the velocity they converge to.)"""
+    # The velocity's bound is the filter's (its lag after five windows), not arithmetic; the
+    # restarted track's values are copied, exact.
     tracker = WindowedTracker(0.0, 5.0)
     places = [(-40.0 + 15.0 * k, 5.0) for k in range(6)] + [(-47.5, 5.0)]
     for k, (x, y) in enumerate(places):
