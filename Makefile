@@ -22,8 +22,8 @@ $(BIN)/python:
 # The planner's compiled core is built by the editable install, again whenever its source
 # changes (planning refuses a core older than its source).
 $(STAMP): pyproject.toml setup.py planning/_lookahead.pyx planning/_routes.pyx \
-		planning/_regression.pyx planning/_evidence.pyx planning/_dense.h planning/_vector_math.h \
-		planning/_regression.h \
+		planning/_regression.pyx planning/_evidence.pyx planning/_measuring.pyx planning/_dense.h \
+		planning/_vector_math.h planning/_regression.h \
 		| $(BIN)/python
 	$(PIP) install $(TORCH)
 	$(PIP) install -e '.[dev]'

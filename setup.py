@@ -1,6 +1,7 @@
 """The compiled core (planning/_lookahead.pyx, the lookahead; planning/_routes.pyx, the route
 fields; planning/_regression.pyx, the networks' training steps; planning/_evidence.pyx, the sums
-of the cloud's jammer search); the rest of the build is in pyproject.toml. Portable flags only:
+of the cloud's jammer search; planning/_measuring.pyx, a UAV's report features and spot
+filter); the rest of the build is in pyproject.toml. Portable flags only:
 a wheel built on one x86_64 CPU must run on any other (planning/_dense.h picks wider vector code
 when the module loads)."""
 
@@ -37,4 +38,5 @@ setup(ext_modules=cythonize([
     compiled("_routes"),
     compiled("_regression"),
     compiled("_evidence"),
+    compiled("_measuring"),
 ], language_level=3))

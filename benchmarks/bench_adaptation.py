@@ -26,8 +26,9 @@ from cloud_service.rounds import delay_rounds
 from cloud_service.sinr_mapping import OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
 from cloud_service.upload_positions import positions_from_features
+from planning.measuring import scenario_features
 from planning.networks import SinrMapNetwork, load_network, predict_levels, predict_probabilities
-from shared.measurements import MeasurementBatch, MeasurementSpec, scenario_features
+from shared.measurements import MeasurementBatch, MeasurementSpec
 from shared.paper import JammerSetting, jammer_params
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario

@@ -19,8 +19,8 @@ from cloud_service.simulated_measurements import measurements_at, uniform_positi
 from cloud_service.sinr_training import train_sinr_map
 from planning import PLANNER_VARIABLE
 from planning.compiled import chosen_planner
+from planning.measuring import scenario_features
 from planning.networks import load_network
-from shared.measurements import scenario_features
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import load_scenario
 from shared.survey_maps import sinr_map_for

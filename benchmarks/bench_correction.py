@@ -34,8 +34,9 @@ from cloud_service.rollout import (
 )
 from cloud_service.upload_positions import positions_from_features
 from planning.maps import MAP_SPACING_M, LevelRaster, RasterMap
+from planning.measuring import scenario_features
 from planning.networks import load_network, predict_levels, predict_probabilities
-from shared.measurements import MeasurementBatch, scenario_features
+from shared.measurements import MeasurementBatch
 from shared.paper import JammerSetting, jammer_params
 from shared.radio import RadioModel
 from shared.scenario import Scenario, load_scenario

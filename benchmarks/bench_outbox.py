@@ -17,8 +17,9 @@ import numpy as np
 from benchmarks.common import Figure, best_rate
 from cloud_service.sinr_memory import SinrMemory
 from jamnav.supervisor import Supervisor, UpConfig
+from planning.measuring import scenario_features
 from shared.cloud_messages import MeasurementUpload, encode_upload
-from shared.measurements import FEATURES_DTYPE, MeasurementSpec, scenario_features
+from shared.measurements import FEATURES_DTYPE, MeasurementSpec
 from shared.scenario import Scenario, load_scenario
 from shared.wire import decode
 from uav_agent.uploads import DEFAULT_BATCH, DEFAULT_CAPACITY, Outbox, open_outbox

@@ -38,14 +38,10 @@ from cloud_service.sinr_mapping import OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
 from planning.chosen import lookahead_policy
 from planning.maps import RasterMap, sinr_network_raster
+from planning.measuring import SpotFilter, scenario_features
 from planning.networks import SinrMapNetwork, WeightsError, load_network
 from planning.reference import LookaheadPolicy
-from shared.measurements import (
-    MeasurementBatch,
-    MeasurementSpec,
-    SpotFilter,
-    scenario_features,
-)
+from shared.measurements import MeasurementBatch, MeasurementSpec
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting
 from shared.scenario import MAX_UAVS, Jammer, Scenario

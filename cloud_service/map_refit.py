@@ -13,8 +13,9 @@ import numpy as np
 
 from cloud_service.change_handling import RetrainConfig
 from cloud_service.simulated_measurements import uniform_positions
+from planning.measuring import scenario_features
 from planning.networks import SinrMapNetwork
-from shared.measurements import MeasurementBatch, scenario_features
+from shared.measurements import MeasurementBatch
 from shared.scenario import Scenario
 
 if TYPE_CHECKING:

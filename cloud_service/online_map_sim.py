@@ -23,8 +23,9 @@ from cloud_service.change_handling import RetrainConfig
 from cloud_service.simulated_measurements import labelled_batch
 from cloud_service.sinr_mapping import RECENT_KEPT, OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
+from planning.measuring import SpotFilter, scenario_features
 from planning.networks import SinrMapNetwork, predict_levels
-from shared.measurements import MeasurementBatch, MeasurementSpec, SpotFilter, scenario_features
+from shared.measurements import MeasurementBatch, MeasurementSpec
 from shared.paper import TABLE_I_JAMMERS, JammerSetting, jammer_params
 from shared.radio import Jammers, RadioModel
 from shared.scenario import Scenario

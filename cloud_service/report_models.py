@@ -16,8 +16,9 @@ from cloud_service.no_jammer_belief import fit_shadowing_sigma, sigma_fit_sample
 from cloud_service.report_likelihood import REPORT_SIGMA_DB
 from cloud_service.sinr_reference import SinrReference
 from cloud_service.upload_positions import positions_from_features
+from planning.measuring import scenario_features
 from planning.networks import SinrMapNetwork, predict_probabilities
-from shared.measurements import MeasurementBatch, scenario_features
+from shared.measurements import MeasurementBatch
 from shared.radio import RadioModel
 from shared.scenario import Scenario
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.measurements import MeasurementBatch, scenario_features
+from planning.measuring import scenario_features
+from shared.measurements import MeasurementBatch
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.measurements import feature_size, features_per_gbs, scenario_features
+from planning.measuring import scenario_features
+from shared.measurements import feature_size, features_per_gbs
 from shared.scenario import Scenario
 
 # Offsets that agree to this (mean, metres) are the same place: float32 features of points

@@ -99,8 +99,8 @@ def cmd_sinr(args: argparse.Namespace) -> int:
 def _sinr_from_model(args: argparse.Namespace) -> int:
     """Levels predicted by a SINR-map network, in the shape of the true-map query; the
     network predicts levels only, so sinr_db and serving_gbs are null."""
+    from planning.measuring import scenario_features
     from planning.networks import predict_levels
-    from shared.measurements import scenario_features
 
     if args.jammer or args.no_jammer:
         raise UsageError("--model: the network is the map of the jammer it was trained for; "

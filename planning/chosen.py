@@ -18,7 +18,9 @@ def require_planner() -> type[LookaheadPolicy]:
     # and the reference flies without it.
     from planning.lookahead import CompiledLookahead  # noqa: PLC0415
 
-    compiled_module("_routes")  # the route fields' part of the core, checked as early
+    # The route fields' and the reports' parts of the core, checked as early.
+    compiled_module("_routes")
+    compiled_module("_measuring")
     return CompiledLookahead
 
 

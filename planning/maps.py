@@ -14,10 +14,10 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
+from planning.measuring import scenario_features
 from planning.networks import SinrMapNetwork, predict_levels
 from planning.routes import FIELDS_KEPT, RouteGrid
 from shared.kinematics import clamp
-from shared.measurements import scenario_features
 from shared.radio import Jammers, RadioModel
 from shared.scenario import Scenario
 

@@ -7,7 +7,7 @@ import hashlib
 from pathlib import Path
 
 COMPILED_SOURCES = ("_lookahead.pyx", "_routes.pyx", "_regression.pyx", "_evidence.pyx",
-                    "_dense.h", "_vector_math.h", "_regression.h")
+                    "_measuring.pyx", "_dense.h", "_vector_math.h", "_regression.h")
 
 
 def source_digest(directory: Path) -> str | None:

@@ -13,9 +13,9 @@ from hypothesis import strategies as st
 
 from cloud_service.change_detection import ChangeDetector
 from cloud_service.evaluation import transient_episodes
+from planning.measuring import SpotFilter
 from shared.events import JammerEstimated, decode_event
 from shared.jammer_messages import JammerEstimate, describe_estimate
-from shared.measurements import SpotFilter
 from shared.paper import JammerSetting
 from shared.scenario import load_scenario
 from shared.topics import Topics

@@ -6,7 +6,7 @@ import pytest
 from cloud_service.evaluation import load_policy
 from cloud_service.rollout import LookaheadController, perfect_maps
 from cloud_service.upload_positions import positions_from_features
-from shared.measurements import scenario_features
+from planning.measuring import scenario_features
 from shared.observation import Observation
 from shared.outcomes import Outcome
 from shared.radio import RadioModel

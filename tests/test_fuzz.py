@@ -21,12 +21,13 @@ import zenoh
 
 from cloud_service.process import CLOCK_SKEW_S
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
+from planning.measuring import scenario_features
 from planning.networks import sha256
 from shared import bus
 from shared.cloud_messages import MeasurementUpload, SinrMap, ValueWeights
 from shared.events import JammerChanged, UavOutcomes, decode_event
 from shared.jammer_messages import JammerCommand
-from shared.measurements import Measurement, MeasurementSpec, scenario_features
+from shared.measurements import Measurement, MeasurementSpec
 from shared.topics import Topics
 from shared.wire import MessageError, decode, encode
 from shared.world_messages import (

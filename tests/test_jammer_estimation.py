@@ -26,7 +26,7 @@ from cloud_service.map_correction import (
 from cloud_service.no_jammer_belief import MAP_READING_SD_DB, fit_shadowing_sigma, prior_of_map
 from cloud_service.report_likelihood import REPORT_SIGMA_DB, report_shares
 from cloud_service.upload_positions import positions_from_features
-from shared.measurements import SpotFilter, scenario_features
+from planning.measuring import SpotFilter, scenario_features
 from shared.paper import TABLE_I_JAMMERS
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario, load_scenario

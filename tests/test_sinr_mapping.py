@@ -25,6 +25,7 @@ from cloud_service.sinr_memory import DbReports, SinrMemory
 from cloud_service.sinr_training import fit_sinr_map, train_sinr_map, warm_up
 from cloud_service.upload_positions import positions_from_features
 from jamnav.cli import main
+from planning.measuring import gbs_features, scenario_features
 from planning.networks import (
     accuracy_of,
     from_bytes,
@@ -32,13 +33,7 @@ from planning.networks import (
     predict_probabilities,
     to_bytes,
 )
-from shared.measurements import (
-    Measurement,
-    MeasurementBatch,
-    MeasurementSpec,
-    gbs_features,
-    scenario_features,
-)
+from shared.measurements import Measurement, MeasurementBatch, MeasurementSpec
 from shared.paper import TABLE_I_JAMMERS
 from shared.radio import JammerParams, RadioModel
 

@@ -17,8 +17,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from planning.measuring import SpotFilter, scenario_features
 from shared.cloud_messages import MeasurementUpload
-from shared.measurements import Measurement, SpotFilter, scenario_features
+from shared.measurements import Measurement
 from shared.topics import Topics
 from shared.wire import decode
 from shared.world_messages import AgentObservation

@@ -33,17 +33,13 @@ import zenoh
 from planning import PlannerError
 from planning.chosen import lookahead_policy, require_planner
 from planning.maps import LevelRaster, RasterMap, sinr_network_raster
+from planning.measuring import SpotFilter, scenario_features
 from planning.networks import WeightsError, from_bytes
 from planning.reference import LookaheadPolicy
 from shared import access, bus
 from shared.cloud_messages import MAX_UPLOAD, SinrMap, ValueWeights
 from shared.events import WeightsRefused
-from shared.measurements import (
-    FEATURES_DTYPE,
-    MeasurementSpec,
-    SpotFilter,
-    scenario_features,
-)
+from shared.measurements import FEATURES_DTYPE, MeasurementSpec
 from shared.process_status import ProcessStatus
 from shared.scenario import MAX_UAVS, Scenario, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from

@@ -10,9 +10,10 @@ from typing import Any
 import numpy as np
 
 from planning.maps import LevelRaster
+from planning.measuring import scenario_features
 from planning.networks import from_bytes, predict_levels
 from shared.cloud_messages import SinrMap
-from shared.measurements import MeasurementSpec, scenario_features
+from shared.measurements import MeasurementSpec
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Scenario
 
