@@ -42,6 +42,13 @@ def run() -> list[Figure]:
         alone = up_report(tmp / "one", "--uavs", "1", "--episodes", "40", "--map", "perfect")
         figures.append(Figure("agent decision p99, 1 agent (wall, state in -> action out)",
                               _worst(alone, "decision_p99_us"), "us", 1000, True))
+        # What of the wall time is waiting: the state queued while the deciding thread was
+        # not running (another of its threads, or another process, on the cores).
+        figures.append(Figure("agent decision p99, 1 agent: the state waiting for the "
+                              "deciding thread (wall)", _worst(alone, "decision_wait_p99_us"),
+                              "us"))
+        figures.append(Figure("agent decision p99, 1 agent (CPU)",
+                              _worst(alone, "decision_cpu_p99_us"), "us"))
         for uavs, episodes, target in ((4, 60, 200), (10, 30, 100)):
             report = up_report(tmp / f"lockstep{uavs}", "--uavs", str(uavs), "--episodes",
                          str(episodes), "--map", "perfect")

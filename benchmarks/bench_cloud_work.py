@@ -6,18 +6,16 @@ either way. Each is the best of 3, on icc2021 with a 1 W jammer."""
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Callable
 
 import numpy as np
 
-from benchmarks.common import Figure
+from benchmarks.common import Figure, planner_chosen
 from cloud_service.change_handling import RetrainConfig
 from cloud_service.jammer_estimation import estimate_jammer
 from cloud_service.simulated_measurements import measurements_at, uniform_positions
 from cloud_service.sinr_training import train_sinr_map
-from planning import PLANNER_VARIABLE
 from planning.compiled import chosen_planner
 from planning.measuring import scenario_features
 from planning.networks import load_network
@@ -71,18 +69,11 @@ def run() -> list[Figure]:
 def best_seconds(work: Callable[[], None], planner: str, repeats: int = 3) -> float:
     """The fastest of ``repeats`` runs of ``work`` with ``planner`` chosen (after one run
     that pays any first call's set-up)."""
-    chosen = os.environ.get(PLANNER_VARIABLE)
-    os.environ[PLANNER_VARIABLE] = planner
-    try:
+    with planner_chosen(planner):
         work()
         times = []
         for _ in range(repeats):
             begun = time.perf_counter()
             work()
             times.append(time.perf_counter() - begun)
-    finally:
-        if chosen is None:
-            os.environ.pop(PLANNER_VARIABLE)
-        else:
-            os.environ[PLANNER_VARIABLE] = chosen
     return min(times)

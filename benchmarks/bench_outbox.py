@@ -1,4 +1,6 @@
-"""The agents' outbox: what appending a measurement costs the flight loop, in memory and
+"""What a step's reports cost an agent on board (the spot filter and the features, compiled
+beside their numpy reference), and the agents' outbox: what appending a measurement costs the
+flight loop, in memory and
 durable (a file per UAV, as ``jamnav up`` gives its agents), and the agents' decision time in
 ``jamnav up`` runs with either. And what an upload costs per measurement: the agent's encoding,
 the cloud's decoding, and its storing, one upload or four to a transaction."""
@@ -14,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import Figure, best_rate
+from benchmarks.common import Figure, best_rate, planner_chosen
 from cloud_service.sinr_memory import SinrMemory
 from jamnav.supervisor import Supervisor, UpConfig
-from planning.measuring import scenario_features
+from planning.measuring import SpotFilter, scenario_features
 from shared.cloud_messages import MeasurementUpload, encode_upload
 from shared.measurements import FEATURES_DTYPE, MeasurementSpec
 from shared.scenario import Scenario, load_scenario
@@ -75,6 +77,34 @@ def upload_figures(scenario: Scenario, directory: Path) -> list[Figure]:
             for what, value in best.items()]
 
 
+def on_board_figures(scenario: Scenario) -> list[Figure]:
+    """A step's reports as an agent takes them: the spot filter's choice and the features of
+    those kept, for one UAV flying a straight line (every report kept), under each planner,
+    and the reference's time over the compiled core's, measured in turn."""
+    reports = scenario.uav.measurements_per_step
+    rng = np.random.default_rng(2)
+    start = rng.uniform(-40, 40, 2)
+    along = start + np.linspace(0.0, 3.0, reports)[:, None] * np.array([0.6, 0.8])
+    levels = np.full((1, reports), 2, dtype=np.int64)
+    uav = np.zeros(1, dtype=np.int64)
+    spots = SpotFilter(scenario, 1)
+
+    def step() -> int:
+        spots.last_xy[:] = np.inf  # as far from the last kept report as can be
+        kept = spots.keep(uav, along[None], levels)[0]
+        scenario_features(scenario, along[kept])
+        return 1
+
+    per_step = {}
+    for planner in ("reference", "compiled"):
+        with planner_chosen(planner):
+            per_step[planner] = 1e6 / best_rate(step)
+    return [Figure(f"a step's {reports} reports on board ({scenario.name}): spot filter and "
+                   f"features, {planner}", seconds, "us") for planner, seconds in per_step.items()
+            ] + [Figure(f"a step's reports on board ({scenario.name}): reference / compiled",
+                        per_step["reference"] / per_step["compiled"], "x")]
+
+
 def _up(run_dir: Path, durable: bool) -> dict:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
@@ -90,7 +120,7 @@ def run() -> list[Figure]:
     features = scenario_features(scenario, positions).astype(FEATURES_DTYPE, copy=False)
     step = [(f"3-0123abcd-{1_000_000 + i}", "uav-3", 120, 1.8e9, row.tobytes(), 1)
             for i, row in enumerate(features)]
-    figures = []
+    figures = on_board_figures(scenario) + on_board_figures(load_scenario("city"))
     with tempfile.TemporaryDirectory() as tmp:
         figures += upload_figures(scenario, Path(tmp))
         for label, directory in (("memory", None), ("durable", Path(tmp))):

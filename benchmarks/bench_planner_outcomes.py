@@ -6,13 +6,10 @@ flights agree."""
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
-from benchmarks.common import Figure
+from benchmarks.common import Figure, planner_chosen
 from cloud_service.evaluation import evaluate
-from planning import PLANNER_VARIABLE
 from shared.paper import TABLE_I_JAMMERS
 from shared.scenario import load_scenario
 
@@ -45,13 +42,6 @@ def run() -> list[Figure]:
 
 def flight(scenario, planner: str, setting, seed: int) -> np.ndarray:
     """The outcome of every UAV-episode of one seed's flight under ``planner``."""
-    before = os.environ.get(PLANNER_VARIABLE)
-    os.environ[PLANNER_VARIABLE] = planner
-    try:
+    with planner_chosen(planner):
         report = evaluate(scenario, "perfect", EPISODES, seed, setting)
-    finally:
-        if before is None:
-            os.environ.pop(PLANNER_VARIABLE)
-        else:
-            os.environ[PLANNER_VARIABLE] = before
     return np.asarray(report["outcomes"])

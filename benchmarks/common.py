@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import os
 import platform
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+
+from planning import PLANNER_VARIABLE
 
 
 def cpu_name() -> str:
@@ -44,3 +48,17 @@ def best_rate(work: Callable[[], int], repeats: int = 5, min_seconds: float = 0.
             items += work()
         best = max(best, items / elapsed)
     return best
+
+
+@contextmanager
+def planner_chosen(planner: str) -> Iterator[None]:
+    """``JAMNAV_PLANNER`` set to ``planner`` for the block, as it was after it."""
+    before = os.environ.get(PLANNER_VARIABLE)
+    os.environ[PLANNER_VARIABLE] = planner
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(PLANNER_VARIABLE)
+        else:
+            os.environ[PLANNER_VARIABLE] = before

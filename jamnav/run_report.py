@@ -71,7 +71,8 @@ def build_report(supervisor: Supervisor, statuses: list[ProcessStatus]) -> dict[
         "versions": {f"{s.role}-{s.ident}": {"value": s.value_version, "sinr": s.sinr_version}
                      for s in statuses if s.role in ("cloud", "agent")},
         "agents": {s.ident: {k: s.details.get(k) for k in (
-            "decisions", "decision_p50_us", "decision_p99_us", "decision_cpu_p99_us")}
+            "decisions", "decision_p50_us", "decision_p99_us", "decision_cpu_p99_us",
+            "decision_wait_p99_us")}
             for s in statuses if s.role == "agent"},
         "measurements": {**measurement_counts(statuses),
                          "memory_of_earlier_runs": supervisor.memory_existed},

@@ -52,6 +52,11 @@ def test_up_runs_seeded_episodes_like_eval_and_leaves_nothing_behind(supervisor,
     for key in ("success_rate", "disconnection_rate", "collision_rate", "timeout_rate"):
         assert report[key] == pytest.approx(expected[key])
     assert report["steps_per_second"] > 0 and report["missed_deadlines"] == 0
+    for agent in report["agents"].values():
+        # Each decision's wait for the deciding thread is part of its wall time, so the
+        # order statistics keep that order too.
+        assert 0 <= agent["decision_wait_p99_us"] <= agent["decision_p99_us"]
+        assert 0 < agent["decision_cpu_p99_us"]
     assert report["restarts"] == {"router": 0, "world": 0, "cloud": 0, "agent": 0}
     assert report["dropped_messages"] == {}
     assert [e["type"] for e in report["events"]].count("uav_outcomes") == episodes

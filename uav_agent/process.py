@@ -196,9 +196,11 @@ class AgentService:
         # once the preparing thread has built what they are flown with.
         self.updates: queue.SimpleQueue = queue.SimpleQueue()
         self.prepared: queue.SimpleQueue = queue.SimpleQueue()
-        # State in -> action out: wall time from arrival (it includes waiting for a core) and
-        # the CPU time the main thread spent on it.
+        # State in -> action out: wall time from arrival (it includes waiting for a core), the
+        # part of it before the deciding thread took the state up, and the CPU time that
+        # thread spent on it.
         self.timings_us: deque[float] = deque(maxlen=TIMINGS_KEPT)
+        self.waits_us: deque[float] = deque(maxlen=TIMINGS_KEPT)
         self.cpu_us: deque[float] = deque(maxlen=TIMINGS_KEPT)
         self.decisions = 0
         # The map and the next destination whose route field was last built between decisions.
@@ -246,6 +248,7 @@ class AgentService:
         # list() copies a deque atomically (GIL held) while the main loop appends to it.
         timings = np.array(list(self.timings_us) or [0.0])
         cpu = np.array(list(self.cpu_us) or [0.0])
+        waits = np.array(list(self.waits_us) or [0.0])
         p50, p99 = np.percentile(timings, [50, 99])
         return ProcessStatus(
             role=ROLE, ident=str(self.uav), pid=os.getpid(), t=time.time(),
@@ -254,6 +257,7 @@ class AgentService:
             details={"decisions": self.decisions, **self.uploader.counts(),
                      "decision_p50_us": float(p50), "decision_p99_us": float(p99),
                      "decision_cpu_p99_us": float(np.percentile(cpu, 99)),
+                     "decision_wait_p99_us": float(np.percentile(waits, 99)),
                      "ready": self.models.ready},
         )
 
@@ -397,6 +401,7 @@ class AgentService:
             self.log.info("asking the cloud for its SINR map: %s", exc)
 
     def _act(self, arrived: float, observation: AgentObservation) -> None:
+        self.waits_us.append((time.perf_counter() - arrived) * 1e6)
         if (observation.sinr_version is not None
                 and observation.sinr_version != self.models.sinr_version):
             self._fly_version(observation.sinr_version)
