@@ -47,8 +47,8 @@ def inside_safe_cells(
     """Which moves (N, A) from ``position`` (N, 2) to ``end`` (N, A, 2) stay in the UAV's
     buffered Voronoi cell (Zhou et al., 2017): for every present other, no farther toward it
     than half their distance less the UAV's own ``radius`` (N,). A cell is convex, so a
-    straight move whose end is inside never leaves it; if every UAV stays in its cell, two
-    UAVs are always at least r_i + r_j apart. Staying put is always allowed: a UAV already
+    straight move whose end is inside never leaves it; if every UAV starts and stays in its
+    cell, two UAVs are always at least r_i + r_j apart. Staying put is always allowed: a UAV already
     closer than its cell permits must not be left without a move."""
     toward = others_position - position[:, None]  # (N, M, 2)
     distance = np.linalg.norm(toward, axis=-1)
