@@ -1,4 +1,4 @@
-"""SINR measurements: the input features of the SINR-mapping network and the upload records.
+"""SINR measurements: the upload records, their features' size and the rules they must meet.
 
 A UAV's measurement is <positions of its K_n nearest GBSs, SINR level> (paper Sec. III-C);
 ``planning.measuring`` computes those features and picks the reports a UAV uploads.
