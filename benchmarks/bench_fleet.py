@@ -1,7 +1,8 @@
 """Many agent processes on one machine (``jamnav up --no-web``): lockstep steps/s with 4 and
 50 agents, launch to first step, an agent's memory and its cold start (process start to its
 first action, measured on an agent the supervisor restarts in a running system); what a
-lockstep step costs each process in CPU, with 4 agents and with 50 on the city; and a hundred
+lockstep step costs each process in CPU, with 4 agents and with 50 on the city, and the
+agents' private memory there; and a hundred
 agents in real time at 5 steps/s, whose every action must be in time."""
 
 from __future__ import annotations
@@ -104,15 +105,24 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def private_mib(pid: int) -> float:
+    """Memory a process holds for itself alone, shared libraries' pages left out: its private
+    clean and dirty pages (``/proc/PID/smaps_rollup``), in MiB."""
+    fields = dict(line.split(":", 1) for line in
+                  Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines()[1:])
+    return sum(int(fields[key].split()[0]) for key in ("Private_Clean", "Private_Dirty")) / 1024
+
+
 def role_of(pid: int) -> str | None:
     words = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
     return next((role for key, role in ROLES.items() if key in words), None)
 
 
-def cpu_per_step(run_dir: Path, *argv: str) -> dict[str, tuple[float, int]]:
+def cpu_per_step(run_dir: Path, *argv: str) -> tuple[dict[str, tuple[float, int]], list[float]]:
     """Milliseconds of CPU per lockstep step of each role of a ``jamnav up`` run (the
     supervisor's included), and how many processes share it: read twice, CPU_WINDOW_S apart,
-    once the run has flown CPU_WARM_S, against the steps the world published meanwhile."""
+    once the run has flown CPU_WARM_S, against the steps the world published meanwhile. And
+    each agent's private memory (MiB) at the second reading."""
     endpoint = free_endpoint()
     supervisor = subprocess.Popen(
         [sys.executable, "-m", "jamnav.cli", "up", *argv, "--no-web", "--no-figures",
@@ -134,6 +144,7 @@ def cpu_per_step(run_dir: Path, *argv: str) -> dict[str, tuple[float, int]]:
             first, before = steps(), {pid: cpu_seconds(pid) for pid in roles}
             time.sleep(CPU_WINDOW_S)
             after, flown = {pid: cpu_seconds(pid) for pid in roles}, steps() - first
+            private = [private_mib(pid) for pid, role in roles.items() if role == "agent"]
     finally:
         supervisor.send_signal(signal.SIGINT)
         supervisor.wait(60)
@@ -142,7 +153,7 @@ def cpu_per_step(run_dir: Path, *argv: str) -> dict[str, tuple[float, int]]:
         if role is not None:
             ms, count = cost.get(role, (0.0, 0))
             cost[role] = (ms + 1e3 * (after[pid] - before[pid]) / flown, count + 1)
-    return cost
+    return cost, private
 
 
 def _answers(steps) -> bool:
@@ -157,14 +168,17 @@ def cpu_figures(tmp: Path) -> list[Figure]:
     figures = []
     for label, argv in (("4 agents", ("--uavs", "4")),
                         ("50 agents, city", ("--scenario", "city", "--uavs", "50"))):
-        cost = cpu_per_step(tmp / f"cpu-{label[:2].strip()}", "--lockstep", "--map",
-                            "perfect", *argv)
+        cost, private = cpu_per_step(tmp / f"cpu-{label[:2].strip()}", "--lockstep", "--map",
+                                     "perfect", *argv)
         for role in ("world", "agent", "cloud", "router", "supervisor"):
             ms, count = cost[role]
             each = f" (each of {count}: {ms / count:.2f} ms)" if count > 1 else ""
             figures.append(Figure(f"CPU per lockstep step, {label}: {role}{each}", ms, "ms"))
         figures.append(Figure(f"CPU per lockstep step, {label}: all",
                               sum(ms for ms, _ in cost.values()), "ms"))
+        figures.append(Figure(f"private memory of the {len(private)} running agents, {label}: "
+                              f"in all (each {min(private):.1f}-{max(private):.1f} MiB)",
+                              sum(private), "MiB"))
     return figures
 
 
