@@ -80,12 +80,11 @@ cdef Py_ssize_t gather_candidates(const double[:, ::1] xy, const double[:, ::1] 
 
 def nearby_gbs_features(const double[:, ::1] xy, const double[:, ::1] gbs_xy,
                         const int64_t[::1] gbs_channels, Py_ssize_t nearby, double altitude,
-                        double gbs_height, bint nearest_position, float[:, ::1] features,
-                        int64_t[::1] nearest):
+                        double gbs_height, bint nearest_position, float[:, ::1] features):
     """``features[i]`` for point ``xy[i]``: per GBS of the ``nearby`` nearest, nearest first,
     [dx, dy, distance, elevation, azimuth] and, where ``gbs_channels`` is not empty, whether
     it shares the nearest GBS's channel; then, with ``nearest_position``, the nearest GBS's
-    position. ``nearest[i]`` is that GBS's index."""
+    position."""
     cdef Py_ssize_t count = xy.shape[0], gbs_count = gbs_xy.shape[0]
     cdef bint channels = gbs_channels.shape[0] > 0
     cdef Py_ssize_t per_gbs = 5 + channels, i, k, c, g, candidate_count, held
@@ -95,9 +94,9 @@ def nearby_gbs_features(const double[:, ::1] xy, const double[:, ::1] gbs_xy,
         raise ValueError(f"{nearby} nearby GBSs of {gbs_count}")
     if channels and gbs_channels.shape[0] != gbs_count:
         raise ValueError(f"{gbs_channels.shape[0]} channels for {gbs_count} GBSs")
-    if (features.shape[0] != count or nearest.shape[0] != count
-            or features.shape[1] != per_gbs * nearby + 2 * nearest_position):
-        raise ValueError("features or nearest of the wrong shape")
+    if features.shape[0] != count or features.shape[1] != per_gbs * nearby + 2 * nearest_position:
+        raise ValueError(f"features of shape ({features.shape[0]}, {features.shape[1]}) for "
+                         f"{count} points")
     cdef Py_ssize_t *candidates = <Py_ssize_t *> malloc(gbs_count * sizeof(Py_ssize_t))
     cdef Py_ssize_t *chosen = <Py_ssize_t *> malloc(gbs_count * sizeof(Py_ssize_t))
     cdef double *best = <double *> malloc(gbs_count * sizeof(double))
@@ -126,7 +125,6 @@ def nearby_gbs_features(const double[:, ::1] xy, const double[:, ::1] gbs_xy,
                 row += per_gbs
             if nearest_position:
                 row[0], row[1] = <float> gbs_xy[chosen[0], 0], <float> gbs_xy[chosen[0], 1]
-            nearest[i] = chosen[0]
     free(candidates)
     free(chosen)
     free(best)

@@ -72,8 +72,7 @@ def _features(xy: np.ndarray, gbs_xy: np.ndarray, nearby: int, altitude: float,
             + 2 * int(nearest_position))
     features = np.empty((len(points), size), dtype=np.float32)
     _core().nearby_gbs_features(points, gbs_xy, channels, nearby, float(altitude),
-                                float(gbs_height), nearest_position, features,
-                                np.empty(len(points), dtype=np.int64))
+                                float(gbs_height), nearest_position, features)
     return features.reshape(xy.shape[:-1] + (size,))
 
 

@@ -80,8 +80,7 @@ def test_the_compiled_features_refuse_more_nearby_gbss_than_there_are():
     gbs = np.zeros((3, 2))
     with pytest.raises(ValueError, match="4 nearby GBSs of 3"):
         core.nearby_gbs_features(np.zeros((1, 2)), gbs, np.empty(0, dtype=np.int64), 4, 50.0,
-                                 30.0, False, np.empty((1, 20), dtype=np.float32),
-                                 np.empty(1, dtype=np.int64))
+                                 30.0, False, np.empty((1, 20), dtype=np.float32))
 
 
 def walks(rng: np.random.Generator, uavs: int, steps: int, reports: int):
