@@ -91,11 +91,11 @@ class RadioModel:
         self.report_step_db = (scenario.uav.report_step_db if scenario.uav.report == "db"
                                else None)
         self.shadowing = shadowing_field(scenario) if shadowed else None
-        # (K, channels) indicator, None when every GBS shares one channel (the paper's case,
-        # kept to the plain sum, bit for bit).
-        self._channel_members = (
+        # (K, K): whether two GBSs share a channel; None when all do (the paper's case, kept to
+        # the plain sum, bit for bit).
+        self._same_channel = (
             None if gbs.channels is None
-            else (np.asarray(gbs.channels)[:, None] == np.unique(gbs.channels)).astype(np.float64))
+            else np.asarray(gbs.channels)[:, None] == np.asarray(gbs.channels)[None, :])
 
     @staticmethod
     def jammer_of(scenario: Scenario) -> JammerParams | None:
@@ -172,11 +172,12 @@ class RadioModel:
         interference of the other GBSs on its channel."""
         best = received.argmax(axis=1)
         signal = np.take_along_axis(received, best[:, None], axis=1)[:, 0]
-        if self._channel_members is None:
+        if self._same_channel is None:
             return best, signal, received.sum(axis=1) - signal
-        by_channel = received @ self._channel_members
-        serving_channel = self._channel_members[best].argmax(axis=1)
-        return best, signal, by_channel[np.arange(len(best)), serving_channel] - signal
+        # Each point's row summed on its own (not a matrix product, whose blocking depends on
+        # how many points there are), so a point reads the same in any batch.
+        on_channel = np.where(self._same_channel[best], received, 0.0)
+        return best, signal, on_channel.sum(axis=1) - signal
 
     def sinr_of(self, signal: np.ndarray, co_channel: np.ndarray,
                 interference: np.ndarray | float) -> np.ndarray:

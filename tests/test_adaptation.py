@@ -91,8 +91,16 @@ def test_the_world_reports_along_the_path_with_seeded_noise(scenario):
         start = world.position.copy()
         world.step(np.full((envs, 4), 5.0), world.heading)
         samples = noisy.uav.measurements_per_step
-        # Evenly along the step, the last at the new position.
-        np.testing.assert_allclose(world.measured_xy[:, :, -1], world.position)
+        # Evenly along the step, the last at the new position, exactly: the world reads its
+        # truth there from the same evaluation as the reports (noise off: the same SINR).
+        np.testing.assert_array_equal(world.measured_xy[:, :, -1], world.position)
+        exact = VectorWorld(scenario, envs, 4, record_measurements=True)
+        exact.reset(np.arange(envs), [episode_seed(5, k) for k in range(envs)])
+        exact.step(np.full((envs, 4), 5.0), exact.heading)
+        np.testing.assert_array_equal(
+            exact.measured_level[:, :, -1],
+            exact.radio.evaluate(exact.position, exact.jammer()).level)
+        np.testing.assert_array_equal(exact.level, exact.measured_level[:, :, -1])
         np.testing.assert_allclose(world.measured_xy[:, :, 0],
                                    start + (world.position - start) / samples)
         reports.append(world.measured_level[0].copy())

@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from shared.radio import JammerParams, RadioModel
+from shared.scenario import load_scenario
 from tests.conftest import variant
 
 coordinate = st.floats(-50, 50, allow_nan=False)
@@ -160,3 +161,28 @@ def test_batch_shapes_and_per_point_jammers(scenario):
     np.testing.assert_allclose(
         reading.sinr_db[1], radio.evaluate(points[1], JammerParams(20.0, 0.0, 1.0, 30.0)).sinr_db
     )
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), size=st.integers(1, 300),
+       name=st.sampled_from(["icc2021", "icc2021-shadowed", "city"]))
+def test_a_point_reads_the_same_in_any_batch(seed, size, name):
+    # The world evaluates a step's reports and its end in one batch, an in-process
+    # evaluation many environments at once, the world process one: a point's reading must
+    # not depend on which other points share its batch, bit for bit (the city reuses
+    # channels; the shadowed world interpolates its fields).
+    scenario = load_scenario(name)
+    radio = RadioModel(scenario)
+    rng = np.random.default_rng(seed)
+    area = scenario.area
+    points = rng.uniform([area.x_min, area.y_min], [area.x_max, area.y_max], size=(size, 2))
+    jammers = (JammerParams(*rng.uniform(-50, 50, 2), 1.0, 30.0),
+               JammerParams(rng.uniform(-50, 50, size), 5.0, rng.uniform(0, 2, size), 20.0))
+    whole = radio.evaluate(points, jammers)
+    for index in {0, size // 2, size - 1}:
+        alone = radio.evaluate(points[index:index + 1],
+                               (jammers[0], JammerParams(jammers[1].x[index:index + 1], 5.0,
+                                                         jammers[1].power_w[index:index + 1],
+                                                         20.0)))
+        for together, by_itself in zip(whole, alone, strict=True):
+            assert together[index] == by_itself[0]

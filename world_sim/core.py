@@ -307,19 +307,23 @@ class VectorWorld:
         self.serving_gbs[env_ids] = reading.serving_gbs
         self.below_steps[env_ids] = (reading.level == 0).astype(np.int64)
 
-    def _record_measurements(self, new_position: np.ndarray, active: np.ndarray) -> None:
+    def _record_measurements(self, new_position: np.ndarray, active: np.ndarray
+                             ) -> RadioReading:
+        """Book what each receiver reported along the step to ``new_position``, and return the
+        radio at the step's end: its last report point, so one evaluation serves both."""
         samples = self.measured_xy.shape[2]
-        share = (np.arange(1, samples + 1) / samples)[None, None, :, None]
-        self.measured_xy = self.position[:, :, None] + share * (new_position - self.position)[
-            :, :, None]
+        share = (np.arange(1, samples) / samples)[None, None, :, None]
+        along = self.position[:, :, None] + share * (new_position - self.position)[:, :, None]
+        self.measured_xy = np.concatenate([along, new_position[:, :, None]], axis=2)
+        truth = self._radio_of_active(self.measured_xy, active)
         # Every UAV's receiver noise is drawn, so that each episode's stream of draws does not
         # depend on when its other UAVs ended their missions.
-        sinr_db = self._radio_of_active(self.measured_xy, active).sinr_db
-        reports = [self.radio.measured_reports(sinr_db[env], self._receiver_noise[env])
+        reports = [self.radio.measured_reports(truth.sinr_db[env], self._receiver_noise[env])
                    for env in range(self.num_envs)]
         self.measured_level = np.stack([report.level for report in reports])
         self.measured_sinr_db = np.stack([report.sinr_db for report in reports])
         self.measured = active.copy()
+        return RadioReading(*(field[:, :, -1] for field in truth))
 
     def _radio_of_active(self, xy: np.ndarray, active: np.ndarray) -> RadioReading:
         """The radio at points ``xy`` (E, J, ..., 2) of the active UAVs (``active`` (E, J)),
@@ -328,14 +332,23 @@ class VectorWorld:
         episode about a fifth of its time, while its last few UAVs flew on alone."""
         env, uav = np.nonzero(active)
         points = xy[env, uav]
-        per_point = (-1,) + (1,) * (points.ndim - 2)
-        jammers = [JammerParams(*(np.asarray(field)[env].reshape(per_point) for field in slot))
-                   for slot in self.jammer()]
-        some = self.radio.evaluate(points, jammers)
+        some = self.radio.evaluate(points, self._jammers_of_points(env, points.ndim))
         every = RadioReading(*(np.zeros(xy.shape[:-1], dtype=field.dtype) for field in some))
         for whole, part in zip(every, some, strict=True):
             whole[env, uav] = part
         return every
+
+    def _jammers_of_points(self, env: np.ndarray, ndim: int) -> list[JammerParams]:
+        """Each jammer slot for points (n, ..., 2) of environments ``env`` (n,): its fields
+        one value per point, or plain numbers when the world has one environment (the world
+        process's), which spares a step the per-point copies."""
+        if self.num_envs == 1:
+            return [JammerParams(*map(float, slot)) for slot in zip(
+                self.jammer_x[0], self.jammer_y[0], self.jammer_power[0], self.jammer_height[0],
+                strict=True)]
+        per_point = (-1,) + (1,) * (ndim - 2)
+        return [JammerParams(*(np.asarray(field)[env].reshape(per_point) for field in slot))
+                for slot in self.jammer()]
 
     # -- dynamics --------------------------------------------------------------------------
     @property
@@ -369,12 +382,11 @@ class VectorWorld:
                                          self.scenario.uav.arrival_tolerance_m,
                                          may_arrive=active & ~collided)
         self._place_driven_jammers(self._driven, self.steps + 1, new_position, active)
-        reading = self._radio_of_active(new_position, active)
+        reading = (self._record_measurements(new_position, active) if self.record_measurements
+                   else self._radio_of_active(new_position, active))
         below, disconnected = disconnections(reading.level, self.below_steps,
                                              self.disconnection_limit,
                                              still_flying=active & ~collided & ~arrived)
-        if self.record_measurements:
-            self._record_measurements(new_position, active)
 
         check_now = self.rewards.is_check_step(self.steps)[:, None]
         self.steps += 1
