@@ -19,11 +19,11 @@ install: $(STAMP)
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
-# The planner's compiled core is built by the editable install, again whenever its source
-# changes (planning refuses a core older than its source).
+# The compiled core is built by the editable install, again whenever its source changes
+# (shared.compiled_core refuses a core older than its source).
 $(STAMP): pyproject.toml setup.py planning/_lookahead.pyx planning/_routes.pyx \
 		planning/_regression.pyx planning/_evidence.pyx planning/_measuring.pyx planning/_dense.h \
-		planning/_vector_math.h planning/_regression.h \
+		planning/_regression.h shared/_radio.pyx shared/_vector_math.h \
 		| $(BIN)/python
 	$(PIP) install $(TORCH)
 	$(PIP) install -e '.[dev]'

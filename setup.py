@@ -1,9 +1,9 @@
 """The compiled core (planning/_lookahead.pyx, the lookahead; planning/_routes.pyx, the route
 fields; planning/_regression.pyx, the networks' training steps; planning/_evidence.pyx, the sums
 of the cloud's jammer search; planning/_measuring.pyx, a UAV's report features and spot
-filter); the rest of the build is in pyproject.toml. Portable flags only:
-a wheel built on one x86_64 CPU must run on any other (planning/_dense.h picks wider vector code
-when the module loads)."""
+filter; shared/_radio.pyx, the GBSs' received powers); the rest of the build is in
+pyproject.toml. Portable flags only: a wheel built on one x86_64 CPU must run on any other
+(planning/_dense.h and shared/_vector_math.h pick wider vector code when the module loads)."""
 
 import importlib.util
 from pathlib import Path
@@ -13,30 +13,31 @@ from setuptools import Extension, setup
 
 HERE = Path(__file__).resolve().parent
 _spec = importlib.util.spec_from_file_location("source_digest",
-                                               HERE / "planning" / "source_digest.py")
+                                               HERE / "shared" / "source_digest.py")
 _digest = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_digest)
 
 
 def compiled(name: str, **options) -> Extension:
-    """planning.<name> from planning/<name>.pyx, stamped with the digest of every compiled
-    source: a change to any of them makes every module stale, and so each is rebuilt."""
+    """The module ``name`` (``planning._routes``) from its .pyx, stamped with the digest of
+    every compiled source: a change to any of them makes every module stale, and so each is
+    rebuilt."""
     return Extension(
-        f"planning.{name}",
-        [f"planning/{name}.pyx"],
-        include_dirs=["planning"],
-        depends=[f"planning/{source}" for source in _digest.COMPILED_SOURCES],
-        define_macros=[("PLANNING_SOURCE_DIGEST",
-                        f'"{_digest.source_digest(HERE / "planning")}"')],
+        name,
+        [name.replace(".", "/") + ".pyx"],
+        include_dirs=["planning", "shared"],
+        depends=list(_digest.COMPILED_SOURCES),
+        define_macros=[("COMPILED_SOURCE_DIGEST", f'"{_digest.source_digest(HERE)}"')],
         extra_compile_args=["-O3"],
         **options,
     )
 
 
 setup(ext_modules=cythonize([
-    compiled("_lookahead", libraries=["mvec"]),  # glibc's vector math (planning/_vector_math.h)
-    compiled("_routes"),
-    compiled("_regression"),
-    compiled("_evidence"),
-    compiled("_measuring"),
+    compiled("planning._lookahead", libraries=["mvec"]),  # glibc's vector math
+    compiled("planning._routes"),
+    compiled("planning._regression"),
+    compiled("planning._evidence"),
+    compiled("planning._measuring"),
+    compiled("shared._radio", libraries=["mvec"]),
 ], language_level=3))

@@ -66,6 +66,7 @@ from shared.jammer_messages import (
 )
 from shared.measurements import MeasurementBatch, MeasurementSpec
 from shared.process_status import ProcessStatus
+from shared.radio import radio_core
 from shared.scenario import Scenario, load_scenario
 from shared.shipped import DEFAULT_VALUE_NET, EXTENDED_VALUE_NET, VALUE_NET_HELP, value_net_path
 from shared.survey_maps import foreign_survey_map, sinr_map_for
@@ -514,7 +515,9 @@ def load_training(network: SinrMapNetwork, background: bool) -> None:
 
 
 def cloud_setup(args: argparse.Namespace) -> bus.ServiceSetup:
-    """The cloud the arguments ask for; a ValueError names the first wrong one."""
+    """The cloud the arguments ask for; a ValueError names the first wrong one, and a
+    CompiledCoreError a radio core that cannot run."""
+    radio_core()
     scenario = load_scenario(args.scenario)
     if args.cloud_latency is not None:
         scenario = scenario.changed({"online_map.cloud_latency_s": args.cloud_latency})

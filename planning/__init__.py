@@ -12,9 +12,8 @@ This package imports ``shared``; ``shared`` and the world (``world_sim``) never 
 
 from __future__ import annotations
 
-PLANNER_VARIABLE = "JAMNAV_PLANNER"
-PLANNERS = ("compiled", "reference")
+from shared.compiled_core import CHOICES as PLANNERS
+from shared.compiled_core import CORE_VARIABLE as PLANNER_VARIABLE
+from shared.compiled_core import CompiledCoreError as PlannerError
 
-
-class PlannerError(RuntimeError):
-    """The planner asked for cannot run (one line, naming the fix)."""
+__all__ = ["PLANNERS", "PLANNER_VARIABLE", "PlannerError"]

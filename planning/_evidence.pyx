@@ -11,17 +11,17 @@ rounding)."""
 
 cdef extern from *:
     """
-    #ifndef PLANNING_SOURCE_DIGEST
-    #define PLANNING_SOURCE_DIGEST ""
+    #ifndef COMPILED_SOURCE_DIGEST
+    #define COMPILED_SOURCE_DIGEST ""
     #endif
     """
-    const char *PLANNING_SOURCE_DIGEST
+    const char *COMPILED_SOURCE_DIGEST
 
 from libc.math cimport fabs, isfinite, rint
 
 import numpy as np
 
-SOURCE_DIGEST = PLANNING_SOURCE_DIGEST.decode()
+SOURCE_DIGEST = COMPILED_SOURCE_DIGEST.decode()
 
 
 def add_table_entries(const int[:, ::1] first_entry, const int[::1] power_offsets,

@@ -33,13 +33,13 @@ cdef extern from "_dense.h" nogil:
 # sources beside it, so a module left from older source is refused, not run.
 cdef extern from *:
     """
-    #ifndef PLANNING_SOURCE_DIGEST
-    #define PLANNING_SOURCE_DIGEST ""
+    #ifndef COMPILED_SOURCE_DIGEST
+    #define COMPILED_SOURCE_DIGEST ""
     #endif
     """
-    const char *PLANNING_SOURCE_DIGEST
+    const char *COMPILED_SOURCE_DIGEST
 
-SOURCE_DIGEST = PLANNING_SOURCE_DIGEST.decode()
+SOURCE_DIGEST = COMPILED_SOURCE_DIGEST.decode()
 
 cdef enum:
     MAX_WATCHED = 16  # shared.scenario bounds observed_uavs so

@@ -11,17 +11,17 @@ reference's by one float32 rounding step."""
 
 cdef extern from *:
     """
-    #ifndef PLANNING_SOURCE_DIGEST
-    #define PLANNING_SOURCE_DIGEST ""
+    #ifndef COMPILED_SOURCE_DIGEST
+    #define COMPILED_SOURCE_DIGEST ""
     #endif
     """
-    const char *PLANNING_SOURCE_DIGEST
+    const char *COMPILED_SOURCE_DIGEST
 
 from libc.math cimport atan2, hypot
 from libc.stdint cimport int64_t, uint8_t
 from libc.stdlib cimport free, malloc
 
-SOURCE_DIGEST = PLANNING_SOURCE_DIGEST.decode()
+SOURCE_DIGEST = COMPILED_SOURCE_DIGEST.decode()
 
 # Slack on the candidates' reach (m): rounding must not drop a GBS on the boundary.
 cdef double CANDIDATE_SLACK_M = 1e-3

@@ -27,6 +27,7 @@ import zenoh
 import zenoh.ext
 
 from shared.access import Guard, Login
+from shared.compiled_core import CompiledCoreError
 from shared.process_status import ProcessStatus
 from shared.topics import Topics, uav_in_key
 from shared.wire import Message, MessageError, decode, encode
@@ -364,17 +365,17 @@ class ServiceSetup(NamedTuple):
 
 
 def run_service(role: str, parser: argparse.ArgumentParser,
-                setup: Callable[[argparse.Namespace], ServiceSetup], argv: list[str] | None,
-                refused: tuple[type[Exception], ...] = ()) -> int:
+                setup: Callable[[argparse.Namespace], ServiceSetup], argv: list[str] | None
+                ) -> int:
     """The shell of the world, the cloud and an agent: ``parser`` reads the command line
     ``argv``; ``setup`` checks what it says, and a mistake in it (a ValueError, a BusError or
-    one of ``refused``) ends in one line and exit 2; then logging on stderr and a session to the
-    router that SIGTERM, SIGINT or the parent's end stop, or exit 1 where the router cannot be
-    reached; then the process runs, and its exit code is the shell's."""
+    a compiled core that cannot run) ends in one line and exit 2; then logging on stderr and a
+    session to the router that SIGTERM, SIGINT or the parent's end stop, or exit 1 where the
+    router cannot be reached; then the process runs, and its exit code is the shell's."""
     args = parser.parse_args(argv)
     try:
         service = setup(args)
-    except (ValueError, BusError, *refused) as exc:
+    except (ValueError, BusError, CompiledCoreError) as exc:
         return bad_arguments(role, exc)
     log = setup_logging(service.log_name or role)
     session, stop = service_session(role, service.endpoint, service.login)

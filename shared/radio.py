@@ -5,25 +5,33 @@ G_m dB; Eq. (5) is a path loss (negative exponent), scaled by the jammer's effic
 of its nominal power that reaches the UAV receiver as in-band interference.
 
 This is the only implementation of the radio model: the world, training, evaluation, the cloud
-and the command line all call it. A scenario with a ``[shadowing]`` section adds log-normal
-shadowing to every link (``shared/shadowing.py``): that is the world's truth. The same model
-built with ``shadowed=False`` is the idealized Eq. (1)-(5) for the same layout, all that the
-operator's cloud can know.
+and the command line all call it. The received powers, most of its time, run compiled
+(``shared/_radio.pyx``) unless ``JAMNAV_PLANNER=reference`` chooses their numpy reference. A
+scenario with a ``[shadowing]`` section adds log-normal shadowing to every link
+(``shared/shadowing.py``): that is the world's truth. The same model built with
+``shadowed=False`` is the idealized Eq. (1)-(5) for the same layout, all that the operator's
+cloud can know.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
+from types import ModuleType
 from typing import NamedTuple
 
 import numpy as np
 
+from shared.compiled_core import chosen_core, compiled_module
 from shared.scenario import Scenario
 from shared.shadowing import shadowing_field
 
 _LN10 = math.log(10.0)
-_CHUNK = 8192  # points per block: keeps the (points x GBS) temporaries inside the CPU cache
+# Point-GBS pairs per block: keeps each (points x GBS) temporary (128 KiB) inside a core's L2
+# cache. With 192 GBSs, blocks of 8,192 points made the city's 550 report points of a step
+# three times slower (BENCHMARKS.md, "The world's step").
+_CHUNK_PAIRS = 16384
 
 
 class JammerParams(NamedTuple):
@@ -64,6 +72,18 @@ class Reports(NamedTuple):
     sinr_db: np.ndarray  # the measured SINR in report steps; NaN where only levels are reported
 
 
+def radio_core() -> ModuleType | None:
+    """The radio's compiled core (``shared/_radio.pyx``), or None where ``JAMNAV_PLANNER``
+    chooses the numpy reference; a missing or stale core is a CompiledCoreError, which a
+    process meets as it starts."""
+    return None if chosen_core() == "reference" else _compiled_radio()
+
+
+@functools.cache
+def _compiled_radio() -> ModuleType:
+    return compiled_module("shared._radio")
+
+
 class RadioModel:
     """SINR at UAV altitude for the GBS layout of one scenario, with any jammers or none.
 
@@ -72,6 +92,7 @@ class RadioModel:
     """
 
     def __init__(self, scenario: Scenario, *, shadowed: bool = True):
+        self._core = radio_core()
         gbs, channel = scenario.gbs, scenario.channel
         self.altitude_m = scenario.uav.altitude_m
         self.gbs_xy = np.asarray(gbs.positions, dtype=np.float64)
@@ -130,6 +151,16 @@ class RadioModel:
 
     def _ideal_gbs_received_power(self, xy: np.ndarray) -> np.ndarray:
         xy = np.asarray(xy, dtype=np.float64)
+        if self._core is None:
+            return self._reference_gbs_received_power(xy)
+        points = np.ascontiguousarray(xy.reshape(-1, 2))
+        received = np.empty((len(points), len(self.gbs_xy)))
+        self._core.gbs_received_power(
+            points, self.gbs_xy, self._height_gap, self._tilt_rad, self._beamwidth_rad,
+            self._max_attenuation_db, self.alpha, self.gbs_power_w, _LN10, received)
+        return received.reshape(xy.shape[:-1] + (len(self.gbs_xy),))
+
+    def _reference_gbs_received_power(self, xy: np.ndarray) -> np.ndarray:
         dx = xy[..., 0, None] - self.gbs_xy[:, 0]
         dy = xy[..., 1, None] - self.gbs_xy[:, 1]
         horizontal_sq = dx * dx + dy * dy
@@ -219,8 +250,9 @@ class RadioModel:
         n = flat.shape[0]
         sinr = np.empty(n)
         serving = np.empty(n, dtype=np.int64)
-        for start in range(0, n, _CHUNK):
-            block = slice(start, start + _CHUNK)
+        points_per_block = max(1, _CHUNK_PAIRS // len(self.gbs_xy))
+        for start in range(0, n, points_per_block):
+            block = slice(start, start + points_per_block)
             block_jammers = tuple(
                 JammerParams(*(f if np.ndim(f) == 0 else f[block] for f in jammer))
                 for jammer in flat_jammers)

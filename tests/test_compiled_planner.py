@@ -180,14 +180,18 @@ def test_a_scripted_network_is_refused_by_the_compiled_planner(scenario):
 BROKEN_CORE = """
 import json, sys
 import numpy as np
-import planning.source_digest
+import shared.source_digest
 fault, module, asked = sys.argv[1:]
 if fault == "missing":
-    sys.modules[f"planning.{module}"] = None
+    sys.modules[module] = None
 else:
-    planning.source_digest.source_digest = lambda directory: "other source"
+    shared.source_digest.source_digest = lambda root: "other source"
 try:
-    if asked == "planner":
+    if asked == "radio":
+        from shared.radio import RadioModel
+        from shared.scenario import load_scenario
+        RadioModel(load_scenario())
+    elif asked == "planner":
         from planning.chosen import require_planner
         require_planner()
     elif asked == "regression":
@@ -205,19 +209,20 @@ except Exception as exc:
 
 
 @pytest.mark.parametrize(("fault", "module", "asked"), [
-    ("missing", "_lookahead", "planner"), ("missing", "_routes", "planner"),
-    ("missing", "_routes", "routes"), ("stale", "_lookahead", "planner"),
-    ("stale", "_routes", "routes"), ("missing", "_regression", "regression"),
-    ("stale", "_regression", "regression")])
+    ("missing", "planning._lookahead", "planner"), ("missing", "planning._routes", "planner"),
+    ("missing", "planning._routes", "routes"), ("stale", "planning._lookahead", "planner"),
+    ("stale", "planning._routes", "routes"), ("missing", "planning._regression", "regression"),
+    ("stale", "planning._regression", "regression"), ("missing", "shared._radio", "radio"),
+    ("stale", "shared._radio", "radio")])
 def test_a_missing_or_stale_core_is_an_error_naming_the_fix(fault, module, asked):
-    """A process that asks for the compiled planner is stopped as it starts, whichever module
-    of its core is at fault, and neither a route grid nor a training step is made by the
-    reference instead."""
+    """A process that asks for the compiled core is stopped as it starts, whichever module of
+    it is at fault, and neither a route grid, a training step nor a radio reading is made by
+    the reference instead."""
     done = subprocess.run([sys.executable, "-c", BROKEN_CORE, fault, module, asked], cwd=ROOT,
                           capture_output=True, text=True, timeout=60,
                           env={k: v for k, v in os.environ.items() if k != PLANNER_VARIABLE})
     kind, message = json.loads(done.stdout)
-    assert kind == "PlannerError" and "make install" in message and "\n" not in message
+    assert kind == "CompiledCoreError" and "make install" in message and "\n" not in message
     if fault == "missing":
         assert module in message
 

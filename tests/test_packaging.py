@@ -30,6 +30,8 @@ from planning.chosen import require_planner
 from planning.compiled import compiled_module
 require_planner()
 compiled_module("_regression")
+from shared.radio import radio_core
+radio_core()
 from shared.scenario import SCENARIO_DIR, ScenarioError, resolve_scenario_path
 from shared.shipped import MODELS_DIR
 try:
@@ -53,16 +55,15 @@ def checked(argv: list[str], **kwargs) -> subprocess.CompletedProcess:
 
 
 def copy_sources(dest: Path) -> Path:
-    """What the build reads: pyproject.toml, setup.py (the compiled planner), the readme and
-    the directory of every package it names, without the checkout's own build of the planner's
-    core (a build in the checkout would leave build/ there, stale files included)."""
+    """What the build reads: pyproject.toml, setup.py (the compiled core), the readme and the
+    directory of every package it names, without the checkout's own build of the core (a build
+    in the checkout would leave build/ there, stale files included)."""
     config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
     setuptools = config["tool"]["setuptools"]
     mapped = setuptools.get("package-dir", {})
     for top in {mapped.get(p, p.replace(".", "/")).split("/")[0] for p in setuptools["packages"]}:
         shutil.copytree(ROOT / top, dest / top,
-                        ignore=shutil.ignore_patterns("__pycache__", "*.so", "_lookahead.c",
-                                                      "_routes.c", "_regression.c"))
+                        ignore=shutil.ignore_patterns("__pycache__", "*.so", "*.c"))
     for name in ("pyproject.toml", "setup.py", config["project"]["readme"]):
         shutil.copy(ROOT / name, dest / name)
     return dest
@@ -91,10 +92,10 @@ def test_the_installed_copy_runs_on_its_own_files(installed):
     assert {name.split(".")[0] for name in probe["modules"]} == set(TOP_LEVEL)
     outside = [f for f in probe["modules"].values() if not Path(f).resolve().is_relative_to(site)]
     assert outside == []
-    # The wheel carries the planner's compiled core, built from the copied sources.
-    assert Path(probe["modules"]["planning._lookahead"]).suffix == ".so"
-    assert Path(probe["modules"]["planning._routes"]).suffix == ".so"
-    assert Path(probe["modules"]["planning._regression"]).suffix == ".so"
+    # The wheel carries the compiled core, built from the copied sources.
+    for module in ("planning._lookahead", "planning._routes", "planning._regression",
+                   "shared._radio"):
+        assert Path(probe["modules"][module]).suffix == ".so"
     shipped_scenarios = sorted(p.name for p in (ROOT / "scenarios").glob("*.toml"))
     assert probe["scenarios"] == shipped_scenarios
     assert probe["models"] == sorted(

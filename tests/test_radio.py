@@ -186,3 +186,42 @@ def test_a_point_reads_the_same_in_any_batch(seed, size, name):
                                                          20.0)))
         for together, by_itself in zip(whole, alone, strict=True):
             assert together[index] == by_itself[0]
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), size=st.integers(1, 400),
+       name=st.sampled_from(["icc2021", "city", "two-jammers"]))
+def test_the_compiled_received_powers_agree_with_the_reference(seed, size, name):
+    # The core's atan2, log and exp (glibc's vector math) and numpy's each lie within 4 ulp
+    # of the truth, and the other operations round alike. A power is scale * exp(e), e the
+    # log-power: the log's error scales with |e|, and so with both sides' 4 ulp on each of
+    # the three functions and the 6 roundings feeding e, |d e| <= 2 * (3 * 4 + 6) * (|e| + 1)
+    # * eps; exp turns that into the relative error of the power (plus its own 4 ulp each).
+    scenario = load_scenario(name)
+    radio = RadioModel(scenario)
+    assert radio._core is not None
+    area = scenario.area
+    rng = np.random.default_rng(seed)
+    points = rng.uniform([area.x_min, area.y_min], [area.x_max, area.y_max], size=(size, 2))
+    compiled = radio._ideal_gbs_received_power(points)
+    reference = radio._reference_gbs_received_power(points)
+    eps = np.finfo(np.float64).eps
+    log_power = np.abs(np.log(reference / (radio.gbs_power_w * radio._height_gap)))
+    bound = (2 * (3 * 4 + 6) * (log_power + 1) + 2 * 4) * eps
+    assert (np.abs(compiled / reference - 1) <= bound).all()
+    # The SINR is a ratio of sums of these powers (the jammer's alike on both sides): within
+    # twice the powers' worst relative error, and so the same level away from the edges.
+    jammers = RadioModel.jammers_of(scenario)
+    core = radio._core
+    by_core = radio.evaluate(points, jammers)
+    radio._core = None
+    by_reference = radio.evaluate(points, jammers)
+    radio._core = core
+    worst_db = 10 / math.log(10) * 2 * bound.max() * 1.01
+    assert np.allclose(by_core.sinr_db, by_reference.sinr_db, rtol=0, atol=worst_db)
+    clear = (np.abs(by_reference.sinr_db[:, None] - radio.level_edges_db) > worst_db).all(axis=1)
+    np.testing.assert_array_equal(by_core.level[clear], by_reference.level[clear])
+    # The same serving GBS where the two strongest are not within those errors of a tie.
+    strongest = np.sort(reference, axis=1)[:, -2:]
+    apart = (strongest[:, 1] - strongest[:, 0]) / strongest[:, 1] > 2 * bound.max()
+    np.testing.assert_array_equal(by_core.serving_gbs[apart], by_reference.serving_gbs[apart])

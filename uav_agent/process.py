@@ -30,7 +30,6 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from planning import PlannerError
 from planning.chosen import lookahead_policy, require_planner
 from planning.maps import LevelRaster, RasterMap, sinr_network_raster
 from planning.measuring import SpotFilter, scenario_features
@@ -530,7 +529,7 @@ def agent_setup(args: argparse.Namespace) -> bus.ServiceSetup:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return bus.run_service("agent", build_parser(), agent_setup, argv, refused=(PlannerError,))
+    return bus.run_service("agent", build_parser(), agent_setup, argv)
 
 
 if __name__ == "__main__":

@@ -43,6 +43,7 @@ from shared.jammer_messages import (
 )
 from shared.observation import Observation, decision_reach, decision_relevant
 from shared.process_status import ProcessStatus
+from shared.radio import radio_core
 from shared.scenario import MAX_UAVS, Jammer, Scenario, load_scenario
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
 from shared.wire import encode
@@ -492,7 +493,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def world_setup(args: argparse.Namespace) -> bus.ServiceSetup:
-    """The world the arguments ask for; a ValueError names the first wrong one."""
+    """The world the arguments ask for; a ValueError names the first wrong one, and a
+    CompiledCoreError a radio core that cannot run."""
+    radio_core()
     scenario = load_scenario(args.scenario)
     uavs = scenario.missions.uav_count if args.uavs is None else args.uavs
     if not 1 <= uavs <= MAX_UAVS:
