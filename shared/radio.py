@@ -28,10 +28,7 @@ from shared.scenario import Scenario
 from shared.shadowing import shadowing_field
 
 _LN10 = math.log(10.0)
-# Point-GBS pairs per block: keeps each (points x GBS) temporary (128 KiB) inside a core's L2
-# cache. With 192 GBSs, blocks of 8,192 points made the city's 550 report points of a step
-# three times slower (BENCHMARKS.md, "The world's step").
-_CHUNK_PAIRS = 16384
+_CHUNK = 8192  # points per block: keeps the (points x GBS) temporaries inside the CPU cache
 
 
 class JammerParams(NamedTuple):
@@ -250,9 +247,8 @@ class RadioModel:
         n = flat.shape[0]
         sinr = np.empty(n)
         serving = np.empty(n, dtype=np.int64)
-        points_per_block = max(1, _CHUNK_PAIRS // len(self.gbs_xy))
-        for start in range(0, n, points_per_block):
-            block = slice(start, start + points_per_block)
+        for start in range(0, n, _CHUNK):
+            block = slice(start, start + _CHUNK)
             block_jammers = tuple(
                 JammerParams(*(f if np.ndim(f) == 0 else f[block] for f in jammer))
                 for jammer in flat_jammers)
