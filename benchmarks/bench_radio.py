@@ -31,9 +31,9 @@ def run() -> list[Figure]:
             with planner_chosen(planner):
                 radio = RadioModel(scenario)
 
-            def evaluate(radio: RadioModel = radio) -> int:
+            def evaluate(radio: RadioModel = radio, points: np.ndarray = points) -> int:
                 radio.evaluate(points, radio.default_jammers)
-                return count
+                return len(points)
 
             rates[planner] = best_rate(evaluate, repeats=3, min_seconds=1.0)
         if what is None:
