@@ -25,7 +25,7 @@ from libc.stdlib cimport free, malloc
 SOURCE_DIGEST = COMPILED_SOURCE_DIGEST.decode()
 
 # Points whose (point, GBS) pairs are taken at once: each vector call gets many values, and
-# the block's buffers stay in a core's L1 cache with the city's 192 GBSs.
+# the block's four buffers (48 KiB with the city's 192 GBSs) stay in a core's L2 cache.
 cdef enum:
     POINTS_PER_BLOCK = 8
 

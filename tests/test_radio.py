@@ -163,6 +163,12 @@ def test_batch_shapes_and_per_point_jammers(scenario):
     )
 
 
+def points_over(scenario, rng, size):
+    """``size`` points drawn uniformly over the scenario's area."""
+    area = scenario.area
+    return rng.uniform([area.x_min, area.y_min], [area.x_max, area.y_max], size=(size, 2))
+
+
 @settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), size=st.integers(1, 300),
        name=st.sampled_from(["icc2021", "icc2021-shadowed", "city"]))
@@ -174,8 +180,7 @@ def test_a_point_reads_the_same_in_any_batch(seed, size, name):
     scenario = load_scenario(name)
     radio = RadioModel(scenario)
     rng = np.random.default_rng(seed)
-    area = scenario.area
-    points = rng.uniform([area.x_min, area.y_min], [area.x_max, area.y_max], size=(size, 2))
+    points = points_over(scenario, rng, size)
     jammers = (JammerParams(*rng.uniform(-50, 50, 2), 1.0, 30.0),
                JammerParams(rng.uniform(-50, 50, size), 5.0, rng.uniform(0, 2, size), 20.0))
     whole = radio.evaluate(points, jammers)
@@ -200,9 +205,7 @@ def test_the_compiled_received_powers_agree_with_the_reference(seed, size, name)
     scenario = load_scenario(name)
     radio = RadioModel(scenario)
     assert radio._core is not None
-    area = scenario.area
-    rng = np.random.default_rng(seed)
-    points = rng.uniform([area.x_min, area.y_min], [area.x_max, area.y_max], size=(size, 2))
+    points = points_over(scenario, np.random.default_rng(seed), size)
     compiled = radio._ideal_gbs_received_power(points)
     reference = radio._reference_gbs_received_power(points)
     eps = np.finfo(np.float64).eps
