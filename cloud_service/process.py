@@ -39,6 +39,7 @@ from cloud_service.rollout import RasterMaps
 from cloud_service.rounds import RoundDesk, delay_rounds
 from cloud_service.sinr_mapping import OnlineSinrMapper
 from cloud_service.sinr_memory import RUN_DIR_FILE, SinrMemory
+from planning.compiled import require_modules
 from planning.networks import SinrMapNetwork, WeightsError, card_path, load_network, sha256
 from shared import access, bus
 from shared.cloud_messages import (
@@ -516,8 +517,10 @@ def load_training(network: SinrMapNetwork, background: bool) -> None:
 
 def cloud_setup(args: argparse.Namespace) -> bus.ServiceSetup:
     """The cloud the arguments ask for; a ValueError names the first wrong one, and a
-    CompiledCoreError a radio core that cannot run."""
+    CompiledCoreError a compiled core that cannot run (the radio's, the jammer search's sums,
+    the networks' steps and the reports' features, all of which the cloud computes)."""
     radio_core()
+    require_modules("_evidence", "_regression", "_measuring")
     scenario = load_scenario(args.scenario)
     if args.cloud_latency is not None:
         scenario = scenario.changed({"online_map.cloud_latency_s": args.cloud_latency})

@@ -23,6 +23,14 @@ def compiled_module(name: str) -> ModuleType:
     return compiled_core.compiled_module(f"planning.{name}")
 
 
+def require_modules(*names: str) -> None:
+    """Each of the compiled core's ``planning.<name>`` modules checked where the environment
+    chooses the compiled core: a process that needs them stops as it starts, in one line."""
+    if chosen_planner() == "compiled":
+        for name in names:
+            compiled_module(name)
+
+
 THREADS_VARIABLE = "JAMNAV_PLANNER_THREADS"
 
 

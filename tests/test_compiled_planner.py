@@ -253,3 +253,28 @@ def test_two_threads_decide_a_batch_as_one_does(scenario, monkeypatch):
     monkeypatch.setenv(THREADS_VARIABLE, "4")
     with pytest.raises(PlannerError, match=THREADS_VARIABLE):
         CompiledLookahead(scenario, network).decide(fleet, radio_map)
+
+
+# Starts a service with a module of the compiled core missing; the service's set-up must stop
+# it before it connects anywhere.
+SERVICE_WITHOUT = """
+import sys
+module, service = sys.argv[1:3]
+sys.modules[module] = None
+from importlib import import_module
+sys.exit(import_module(service).main(sys.argv[3:]))
+"""
+
+
+@pytest.mark.parametrize(("module", "service"), [
+    ("shared._radio", "world_sim.process"), ("shared._radio", "cloud_service.process"),
+    ("planning._evidence", "cloud_service.process"), ("planning._lookahead", "uav_agent.process")])
+def test_a_service_refuses_a_missing_core_in_one_line(module, service):
+    # A port nothing listens on: a service that got past its set-up would wait for a router.
+    done = subprocess.run([sys.executable, "-c", SERVICE_WITHOUT, module, service,
+                           "--endpoint", "tcp/127.0.0.1:9"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=60,
+                          env={k: v for k, v in os.environ.items() if k != PLANNER_VARIABLE})
+    assert done.returncode == 2
+    assert done.stderr.strip().count("\n") == 0
+    assert module in done.stderr and "make install" in done.stderr

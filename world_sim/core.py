@@ -9,6 +9,7 @@ longer measured, and cannot be collided with.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import defaultdict
 from typing import NamedTuple
@@ -115,9 +116,7 @@ def near_pairs(position: np.ndarray, active: np.ndarray,
     when J is small. O(J log J) per fleet with the tree, where all pairs are O(J^2)."""
     e, j = active.shape
     if j < _TREE_FROM_UAVS:
-        first, second = np.triu_indices(j, 1)
-        env = np.repeat(np.arange(e), first.size)
-        first, second = np.tile(first, e), np.tile(second, e)
+        env, first, second = _every_pair(e, j)
         both = active[env, first] & active[env, second]
         return env[both], first[both], second[both]
     found = [np.empty((0, 3), dtype=np.int64)]
@@ -127,6 +126,17 @@ def near_pairs(position: np.ndarray, active: np.ndarray,
         found.append(np.column_stack([np.full(len(pairs), env), members[pairs]]))
     env, first, second = np.concatenate(found).T
     return env, first, second
+
+
+@functools.lru_cache(maxsize=16)
+def _every_pair(envs: int, uavs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(env, i, k), i < k, of every pair of E fleets of J: the same every step, so built once
+    (read-only)."""
+    first, second = np.triu_indices(uavs, 1)
+    pairs = (np.repeat(np.arange(envs), first.size), np.tile(first, envs), np.tile(second, envs))
+    for index in pairs:
+        index.flags.writeable = False
+    return pairs
 
 
 class VectorWorld:
