@@ -562,7 +562,7 @@ cdef void write_features(Kernel k, const Scene *s, Step *st, int a, MapView *m) 
 
 
 cdef void write_angles(Kernel k, const Scene *s, Step *st) noexcept nogil:
-    # The features write_features left for here, taken together (planning/_vector_math.h): the
+    # The features write_features left for here, taken together (shared/_vector_math.h): the
     # heading against the direction to the goal, and each present other's azimuth.
     cdef int per_action = s.count + 1, a, j
     atan2_many(st.angle_y, st.angle_x, st.angle, k.actions * per_action)
