@@ -39,9 +39,9 @@ demo: install
 		--swap-to 25,-10,1 --run-dir $(DEMO_DIR)
 
 # Two workers (pytest-xdist): the systems of processes on one, the in-process tests on the
-# other (tests/conftest.py groups them).
+# other (tests/conftest.py makes the schedule).
 test: install
-	$(BIN)/python -m pytest -n 2 --dist loadgroup
+	$(BIN)/python -m pytest -n 2 --dist loadscope
 
 # Half an hour of faults: a process (world, cloud, an agent, the router) killed or frozen every
 # 10-30 s, then the ledger of what came through (results/soak/ledger.json, report.json). Three

@@ -97,16 +97,34 @@ def supervisor():
 # `make test` runs the suite on two pytest-xdist workers: these modules share one worker, one
 # test at a time, so two systems never fight each other for the cores while the other worker
 # runs the in-process tests; every other module stays whole on one worker (its module-scoped
-# fixtures are built once).
+# fixtures, such as the packaging test's wheel, are built once).
 SYSTEM_MODULES = frozenset({
     "test_bus_inprocess", "test_bus_supervisor", "test_chaos", "test_checkpoint",
     "test_console_browser", "test_examples", "test_faults", "test_fuzz", "test_packaging",
     "test_recording", "test_security", "test_two_routers",
 })
 
+# The load-balancing schedules of pytest-xdist; the others (each, worksteal) are left as asked.
+_LOAD_SCHEDULES = frozenset({"load", "loadscope", "loadfile", "loadgroup"})
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    for item in items:
-        module = item.module.__name__.rsplit(".", 1)[-1]
-        item.add_marker(pytest.mark.xdist_group("systems" if module in SYSTEM_MODULES
-                                                else module))
+
+def work_unit_of(nodeid: str) -> str:
+    """The unit of work a test belongs to: "systems", or its module."""
+    module = Path(nodeid.split("::", 1)[0]).stem
+    return "systems" if module in SYSTEM_MODULES else module
+
+
+@pytest.hookimpl(optionalhook=True, tryfirst=True)
+def pytest_xdist_make_scheduler(config, log):
+    """Units of work as ``work_unit_of`` says, the largest first (so the systems start at
+    once). The grouping reads node ids, not ``xdist_group`` marks: pytest 9.2 keeps a node's id
+    where pytest-xdist 3.8 no longer renames it, and the marks' groups are lost there."""
+    if config.getvalue("dist") not in _LOAD_SCHEDULES:
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class SystemsOnOneWorker(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return work_unit_of(nodeid)
+
+    return SystemsOnOneWorker(config, log)
