@@ -88,6 +88,7 @@ def estimate_jammer(
     max_position_sd_m: float = MAX_POSITION_SD_M,
     presence_llr: float = PRESENCE_LLR,
     exclusion_llr: float = EXCLUSION_LLR,
+    jammer_frame_xy: np.ndarray | None = None,
 ) -> JammerEstimate | None:
     """The jammer (at the scenario's jammer height) that best explains the reported
     ``levels`` (n,), and SINRs ``reported_db`` (n,) where they are finite, at positions
@@ -101,7 +102,8 @@ def estimate_jammer(
     sd of the world's no-jammer SINR about the ideal model's; None fits it to
     ``no_jammer_levels`` (``fit_shadowing_sigma``), or without them takes
     ``SHADOWING_SIGMA_DB``. ``report_sigma_db``: what a report adds once that SINR is known
-    (receiver noise, the jammer link's own shadowing).
+    (receiver noise, the jammer link's own shadowing). ``jammer_frame_xy`` (n, 2): the
+    positions as a driving jammer's path loss reads them (``Reports``; ``driving_jammer``).
 
     Steps: the coarse search at ``report_sigma_db`` (``_coarse_search``; None with fewer than
     ``min_measurements`` rows with a position), the decision on it (``_decide``, by
@@ -109,7 +111,7 @@ def estimate_jammer(
     estimate refitted with the spread among ``REPORT_SIGMA_CHOICES_DB`` that explains the
     reports best (``_refitted``).
     """
-    reports = Reports.of(scenario, xy, levels, reported_db)
+    reports = Reports.of(scenario, xy, levels, reported_db, jammer_frame_xy)
     reading = _Reading(no_jammer_levels, no_jammer_db, shadowing_sigma_db, outlier_share,
                        independent_spacing_m, min_measurements)
     searched = _coarse_search(scenario, reports, reading, report_sigma_db)

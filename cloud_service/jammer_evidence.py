@@ -42,25 +42,39 @@ _BLOCK_ELEMENTS = 2**20
 
 class Reports(NamedTuple):
     """The uploads a fit reads: where each was taken (n, 2), its level (n,) and its SINR (n,),
-    NaN where only the level was reported; reported SINRs come in steps of ``step_db``."""
+    NaN where only the level was reported; reported SINRs come in steps of ``step_db``.
+    ``frame_xy`` (n, 2): where each stands from a jammer that drives, its position less the
+    jammer's travel between the upload's time and the one the fit places it at; None for a
+    still jammer (the positions themselves). The ground stations are read at ``xy``."""
 
     xy: np.ndarray
     levels: np.ndarray
     sinr_db: np.ndarray
     step_db: float | None
+    frame_xy: np.ndarray | None = None
 
     @classmethod
     def of(cls, scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
-           reported_db: np.ndarray | None = None) -> Reports:
+           reported_db: np.ndarray | None = None,
+           frame_xy: np.ndarray | None = None) -> Reports:
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         levels = np.asarray(levels, dtype=np.int64).reshape(-1)
         sinr_db = (np.full(len(levels), np.nan) if reported_db is None
                    else np.asarray(reported_db, dtype=np.float64).reshape(-1))
+        if frame_xy is not None:
+            frame_xy = np.asarray(frame_xy, dtype=np.float64).reshape(xy.shape)
         return cls(xy, levels, sinr_db,
-                   scenario.uav.report_step_db if np.isfinite(sinr_db).any() else None)
+                   scenario.uav.report_step_db if np.isfinite(sinr_db).any() else None,
+                   frame_xy)
+
+    @property
+    def from_jammer_xy(self) -> np.ndarray:
+        """Where each upload stands as the jammer's path loss reads it."""
+        return self.xy if self.frame_xy is None else self.frame_xy
 
     def take(self, rows: np.ndarray) -> Reports:
-        return Reports(self.xy[rows], self.levels[rows], self.sinr_db[rows], self.step_db)
+        return Reports(self.xy[rows], self.levels[rows], self.sinr_db[rows], self.step_db,
+                       None if self.frame_xy is None else self.frame_xy[rows])
 
 
 def independence_weights(xy: np.ndarray, spacing_m: float) -> np.ndarray:
@@ -85,7 +99,7 @@ class JammerEvidence:
         the evidence is then for one jammer more, against those alone (``no_jammer`` is
         their log-likelihood), as their interference adds to the new one's in Eq. (3)."""
         xy, levels, reported_db = reports.xy, reports.levels, reports.sinr_db
-        self.xy = xy
+        self.xy = reports.from_jammer_xy  # the jammer's path loss reads these
         self.report_sigma_db = report_sigma_db
         _, _, co_channel = radio.serving(radio.gbs_received_power(xy))
         self.interference_db = 10.0 * np.log10(radio.noise_w + co_channel)

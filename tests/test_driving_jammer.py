@@ -1,0 +1,109 @@
+"""A jammer driving at a steady velocity, fitted to every upload at once
+(``cloud_service.driving_jammer``): the velocity grid, the frame the path loss reads, and
+the fit of a jammer that drives and of one that stands still."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cloud_service.driving_jammer import HEADINGS, estimate_driving_jammer, velocity_hypotheses
+from cloud_service.jammer_estimation import estimate_jammer
+from cloud_service.jammer_evidence import JammerEvidence, Reports, independence_weights
+from cloud_service.no_jammer_belief import sinr_beliefs
+from shared.radio import JammerParams, RadioModel
+from tests.conftest import variant
+
+
+def test_the_velocities_stand_still_first_then_every_speed_each_way(scenario):
+    velocities = velocity_hypotheses(scenario)
+    low, high = scenario.training.moving_jammer_speed_range_mps  # 1 and 5 m/s
+    speeds = np.hypot(*velocities.T)
+    assert not velocities[0].any() and len(velocities) == 1 + 5 * HEADINGS
+    assert sorted(set(np.round(speeds[1:], 9))) == [1.0, 2.0, 3.0, 4.0, 5.0]
+    assert (low, high) == (1.0, 5.0)
+    east = velocities[(np.abs(velocities[:, 1]) < 1e-12) & (velocities[:, 0] > 0)]
+    assert sorted(east[:, 0]) == [1.0, 2.0, 3.0, 4.0, 5.0]
+    headings = np.round(np.degrees(np.arctan2(velocities[1:, 1], velocities[1:, 0])) % 360, 6)
+    assert sorted(set(headings)) == [k * 360 / HEADINGS for k in range(HEADINGS)]
+
+
+def test_the_path_loss_reads_the_frame_and_the_ground_stations_the_places(scenario):
+    """Uploads read in a frame moved by d from where they were taken: a jammer at p weighs on
+    them as one at p + d on the uploads where they were, while the ground stations'
+    interference stays that of the places."""
+    # Bound: the two ways round differ by float64's rounding of coordinates under 200 m
+    # (a few 1e-14 m), which moves r by well under 1e-11 dB.
+    radio = RadioModel(scenario, shadowed=False)
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-50, 50, size=(200, 2))
+    levels = radio.evaluate(xy).level
+    shift = np.array([12.5, -4.0])
+    beliefs = sinr_beliefs(radio, xy, levels, None, None)
+
+    def evidence(frame_xy):
+        reports = Reports.of(scenario, xy, levels, frame_xy=frame_xy)
+        return JammerEvidence(radio, scenario.jammer.height_m, reports,
+                              independence_weights(xy, 5.0), beliefs, 1.0, 0.01, 20.0)
+
+    moved, placed = evidence(xy - shift), evidence(None)
+    jammers = rng.uniform(-40, 40, size=(7, 2))
+    np.testing.assert_allclose(moved.ratios_db(jammers, -10.0),
+                               placed.ratios_db(jammers + shift, -10.0), rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(moved.interference_db, placed.interference_db)
+    assert Reports.of(scenario, xy, levels, frame_xy=xy - shift).take(
+        np.arange(3)).frame_xy.tolist() == (xy[:3] - shift).tolist()
+
+
+@pytest.fixture
+def three_metres_a_second(scenario):
+    """icc2021 whose driving jammers all go at 3 m/s: a grid of 16 headings and standing
+    still, which keeps the fits below to a few seconds."""
+    return variant(scenario, training={"moving_jammer_speed_range_mps": (3.0, 3.0)})
+
+
+def reports_of(scenario, jammer_x, rng, seconds=20, per_second=40):
+    """Exact reports anywhere in the area, ``per_second`` a second, under a 1 W jammer at
+    (``jammer_x(t)``, -10): their places, times, levels and no-jammer levels."""
+    truth = RadioModel(scenario)
+    times = np.repeat(np.arange(seconds), per_second) + rng.uniform(0, 1, seconds * per_second)
+    xy = rng.uniform(-50, 50, size=(len(times), 2))
+    jammers = JammerParams(jammer_x(times), np.full(len(times), -10.0), 1.0,
+                           scenario.jammer.height_m)
+    return xy, times, truth.evaluate(xy, jammers).level, truth.evaluate(xy).level
+
+
+def test_a_jammer_driving_a_line_is_placed_where_it_is_and_its_velocity_found(
+        three_metres_a_second):
+    """A 1 W jammer driving east at 3 m/s from (-30, -10) for 20 s: placed at the last
+    second within 3 m of where it is, at the grid's (3, 0) m/s; the still fit of the same
+    uploads lies off its path's end by more than twice that, or places nothing."""
+    # The bounds are the fit's (20 s of 40 exact reports a second; measured 0.4 m), not
+    # arithmetic; the velocity is a node of the grid, compared to its own float64 value.
+    scenario = three_metres_a_second
+    xy, times, levels, no_jammer = reports_of(scenario, lambda t: -30.0 + 3.0 * t,
+                                              np.random.default_rng(5))
+    now = float(times.max())
+    found = estimate_driving_jammer(scenario, xy, times, levels, now,
+                                    no_jammer_levels=no_jammer)
+    assert found is not None and found.present
+    assert math.hypot(found.x - (-30.0 + 3.0 * now), found.y + 10.0) <= 3.0
+    assert (found.vx_mps, found.vy_mps) == pytest.approx((3.0, 0.0), abs=1e-12)
+    assert 0.0 < found.sd_vx_mps < 1.0 and 0.0 < found.sd_vy_mps < 1.0
+    still = estimate_jammer(scenario, xy, levels, no_jammer_levels=no_jammer)
+    assert still is None or math.hypot(still.x - (-30.0 + 3.0 * now), still.y + 10.0) > 6.0
+
+
+def test_a_still_jammer_is_fitted_still(three_metres_a_second):
+    """The same uploads under a jammer standing at (10, -10): no velocity beats standing still
+    by BIC's penalty, so the estimate is the still fit's, with no velocity."""
+    scenario = three_metres_a_second
+    xy, times, levels, no_jammer = reports_of(scenario, lambda t: np.full_like(t, 10.0),
+                                              np.random.default_rng(6))
+    found = estimate_driving_jammer(scenario, xy, times, levels, float(times.max()),
+                                    no_jammer_levels=no_jammer)
+    still = estimate_jammer(scenario, xy, levels, no_jammer_levels=no_jammer)
+    assert found == still and found.vx_mps is None
+    assert math.hypot(found.x - 10.0, found.y + 10.0) <= 2.0
