@@ -8,16 +8,19 @@ map in two ways.
   end of each of those windows.
 - The driving fit (``driving_jammer``): every upload since the crossing began read at once,
   at the end of each window. Four UAVs; the share of those moments it places the jammer at,
-  its error there, and the error of the velocity it finds."""
+  its error there, the error of the velocity it finds, and its time; and the same for the fit
+  of those uploads as if the jammer stood still (``estimate_jammer``)."""
 
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 
 from benchmarks.common import Figure
 from cloud_service.driving_jammer import estimate_driving_jammer
+from cloud_service.jammer_estimation import estimate_jammer
 from cloud_service.jammer_tracking import track_jammer
 from cloud_service.online_map_sim import Fleet
 from cloud_service.upload_positions import positions_from_features
@@ -45,7 +48,8 @@ def fleet_figures(scenario: Scenario, uavs: int) -> list[Figure]:
     jammer = scenario.flown_jammers[0]
     window_s = scenario.online_map.tracking_window_s
     windows = SEEDS * math.floor(CROSSING_S / window_s)
-    track_errors, fit_errors, velocity_errors = [], [], []
+    track_errors, fit_errors, velocity_errors, still_errors = [], [], [], []
+    seconds = {"driving": [], "still": []}
     for seed in range(SEEDS):
         fleet, batches = Fleet(scenario, uavs, np.random.default_rng([seed, 7])), []
         for step in range(CROSSING_S):
@@ -54,11 +58,14 @@ def fleet_figures(scenario: Scenario, uavs: int) -> list[Figure]:
             batches.append(fleet.uploads(JammerParams(x, y, jammer.power_w, jammer.height_m),
                                          float(step), step))
             if uavs == DRIVING_FIT_UAVS and (step + 1) % window_s == 0:
-                fitted = driving_fit_errors(scenario, survey, MeasurementBatch.concatenate(
-                    batches), float(step))
-                if fitted is not None:
-                    fit_errors.append(fitted[0])
-                    velocity_errors.append(fitted[1])
+                driving, still = fit_errors_at(scenario, survey,
+                                               MeasurementBatch.concatenate(batches), float(step),
+                                               seconds)
+                if driving is not None:
+                    fit_errors.append(driving[0])
+                    velocity_errors.append(driving[1])
+                if still is not None:
+                    still_errors.append(still)
         data = MeasurementBatch.concatenate(batches)
         for now in track_jammer(scenario, positions_from_features(scenario, data.features),
                                 data.levels, data.times,
@@ -80,26 +87,50 @@ def fleet_figures(scenario: Scenario, uavs: int) -> list[Figure]:
                     Figure(f"{name}: position error, median", median(fit_errors), "m",
                            TRACK_TARGET_M, lower_is_better=True),
                     Figure(f"{name}: velocity error, median", median(velocity_errors), "m/s",
+                           lower_is_better=True),
+                    Figure(f"{name}: time a fit, mean", 1e3 * float(np.mean(seconds["driving"])),
+                           "ms", lower_is_better=True),
+                    Figure(f"{name}: its time over the still fit's (below)",
+                           float(np.sum(seconds["driving"]) / np.sum(seconds["still"])), "x",
                            lower_is_better=True)]
+        name = name.replace("the driving fit", "the still fit")
+        figures += [Figure(f"{name}: moments that place the jammer, of {windows}",
+                           100.0 * len(still_errors) / windows, "%"),
+                    Figure(f"{name}: position error, median", median(still_errors), "m",
+                           TRACK_TARGET_M, lower_is_better=True),
+                    Figure(f"{name}: time a fit, mean", 1e3 * float(np.mean(seconds["still"])),
+                           "ms", lower_is_better=True)]
     return figures
 
 
-def driving_fit_errors(scenario: Scenario, survey, data: MeasurementBatch,
-                       now: float) -> tuple[float, float] | None:
-    """How far from the convoy's jammer, and from its velocity, the driving fit of ``data``
-    puts it at ``now``; None when the fit places nothing."""
+def fit_errors_at(scenario: Scenario, survey, data: MeasurementBatch, now: float,
+                  seconds: dict[str, list[float]]
+                  ) -> tuple[tuple[float, float] | None, float | None]:
+    """How far from the convoy's jammer at ``now`` the driving fit of ``data`` puts it, and
+    how far from its velocity; and how far the still fit puts it. None where a fit places
+    nothing. Each fit's time goes to ``seconds`` under its name."""
     jammer = scenario.flown_jammers[0]
-    found = estimate_driving_jammer(
-        scenario, positions_from_features(scenario, data.features), data.times, data.levels,
-        now, reported_db=data.sinr_db,
-        no_jammer_levels=predict_probabilities(survey, data.features))
-    if found is None or not found.present:
-        return None
-    velocity = (0.0, 0.0) if found.vx_mps is None else (found.vx_mps, found.vy_mps)
-    true_velocity = np.subtract(position_at(jammer, now + 1.0), position_at(jammer, now))
-    return (float(np.hypot(found.x - position_at(jammer, now)[0],
-                           found.y - position_at(jammer, now)[1])),
-            float(np.hypot(*(np.array(velocity) - true_velocity))))
+    xy = positions_from_features(scenario, data.features)
+    inputs = {"reported_db": data.sinr_db,
+              "no_jammer_levels": predict_probabilities(survey, data.features)}
+    truth = np.array(position_at(jammer, now))
+
+    def off(found) -> float | None:
+        if found is None or not found.present:
+            return None
+        return float(np.hypot(found.x - truth[0], found.y - truth[1]))
+
+    began = time.perf_counter()
+    driving = estimate_driving_jammer(scenario, xy, data.times, data.levels, now, **inputs)
+    seconds["driving"].append(time.perf_counter() - began)
+    began = time.perf_counter()
+    still = off(estimate_jammer(scenario, xy, data.levels, **inputs))
+    seconds["still"].append(time.perf_counter() - began)
+    if off(driving) is None:
+        return None, still
+    velocity = (0.0, 0.0) if driving.vx_mps is None else (driving.vx_mps, driving.vy_mps)
+    true_velocity = np.subtract(position_at(jammer, now + 1.0), truth)
+    return (off(driving), float(np.hypot(*(np.array(velocity) - true_velocity)))), still
 
 
 def median(values: list[float]) -> float:
