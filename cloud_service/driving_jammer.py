@@ -9,7 +9,7 @@ stands, from a jammer that drives at v and is at p at time T, where it would sta
 still one at p had it been taken at its place less v (t - T) (``Reports.frame_xy``). Each
 velocity's estimate is ``estimate_jammer``'s with those positions; the one that explains the
 uploads best is kept when it beats the still jammer's by BIC's penalty for its two
-parameters more.
+parameters more, or when no still jammer converges.
 """
 
 from __future__ import annotations
