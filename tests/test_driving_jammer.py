@@ -66,7 +66,8 @@ def three_metres_a_second(scenario):
 
 
 def reports_of(scenario, jammer_x, rng, seconds=20, per_second=20):
-    """Exact reports anywhere in the area, ``per_second`` a second, under a 1 W jammer at
+    """Reports anywhere in the area, ``per_second`` a second, as the scenario's world gives
+    them (icc2021's exactly; icc2021-shadowed's through its shadowing) under a 1 W jammer at
     (``jammer_x(t)``, -10): their places, times, levels and no-jammer levels."""
     truth = RadioModel(scenario)
     times = np.repeat(np.arange(seconds), per_second) + rng.uniform(0, 1, seconds * per_second)
