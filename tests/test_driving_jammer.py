@@ -19,6 +19,9 @@ from tests.conftest import variant
 
 
 def test_the_velocities_stand_still_first_then_every_speed_each_way(scenario):
+    # The grid is float64: speeds of at most 5 m/s times cos and sin carry about 1e-15 of
+    # rounding, so reading speeds to 1e-9 and "due east" as |vy| < 1e-12 is far above it and
+    # far below the grid's 1 m/s and 22.5 degrees.
     velocities = velocity_hypotheses(scenario)
     low, high = scenario.training.moving_jammer_speed_range_mps  # 1 and 5 m/s
     speeds = np.hypot(*velocities.T)
