@@ -37,7 +37,7 @@ setup(ext_modules=cythonize([
     compiled("planning._lookahead", libraries=["mvec"]),  # glibc's vector math
     compiled("planning._routes"),
     compiled("planning._regression"),
-    compiled("planning._evidence"),
+    compiled("planning._evidence", libraries=["mvec"]),
     compiled("planning._measuring"),
     compiled("shared._radio", libraries=["mvec"]),
 ], language_level=3))

@@ -23,7 +23,9 @@ The online service (``python -m cloud_service.process``, started by ``jamnav up`
   ``estimated_jammer`` (the jammer as the cloud knows it).
 - ``map_correction``: the no-jammer map corrected with the estimated jammers.
 - ``jammer_tracking``: a moving jammer followed through the estimates of successive windows
-  of uploads (a constant-velocity Kalman filter), offline and by the mapper as uploads come.
+  of uploads (a constant-velocity Kalman filter), offline and by the mapper as uploads come;
+  ``driving_jammer``: a jammer at a steady velocity fitted to many seconds of uploads at once
+  (offline: the mapper does not run it).
 - ``scenario_tables`` (offline): the online, perfect and outdated maps under a scenario's own
   jammers, over seeds (``jamnav jammers-table``).
 - ``sinr_training``: fitting a SINR-mapping network (torch, loaded on first use; ``jamnav

@@ -21,7 +21,7 @@ spread wider than the world's reads the power wrong (``_refitted``).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -88,7 +88,6 @@ def estimate_jammer(
     max_position_sd_m: float = MAX_POSITION_SD_M,
     presence_llr: float = PRESENCE_LLR,
     exclusion_llr: float = EXCLUSION_LLR,
-    jammer_frame_xy: np.ndarray | None = None,
 ) -> JammerEstimate | None:
     """The jammer (at the scenario's jammer height) that best explains the reported
     ``levels`` (n,), and SINRs ``reported_db`` (n,) where they are finite, at positions
@@ -102,8 +101,7 @@ def estimate_jammer(
     sd of the world's no-jammer SINR about the ideal model's; None fits it to
     ``no_jammer_levels`` (``fit_shadowing_sigma``), or without them takes
     ``SHADOWING_SIGMA_DB``. ``report_sigma_db``: what a report adds once that SINR is known
-    (receiver noise, the jammer link's own shadowing). ``jammer_frame_xy`` (n, 2): the
-    positions as a driving jammer's path loss reads them (``Reports``; ``driving_jammer``).
+    (receiver noise, the jammer link's own shadowing).
 
     Steps: the coarse search at ``report_sigma_db`` (``_coarse_search``; None with fewer than
     ``min_measurements`` rows with a position), the decision on it (``_decide``, by
@@ -111,20 +109,21 @@ def estimate_jammer(
     estimate refitted with the spread among ``REPORT_SIGMA_CHOICES_DB`` that explains the
     reports best (``_refitted``).
     """
-    reports = Reports.of(scenario, xy, levels, reported_db, jammer_frame_xy)
+    reports = Reports.of(scenario, xy, levels, reported_db)
     reading = _Reading(no_jammer_levels, no_jammer_db, shadowing_sigma_db, outlier_share,
                        independent_spacing_m, min_measurements)
     searched = _coarse_search(scenario, reports, reading, report_sigma_db)
     if searched is None:
         return None
     estimate = _decide(scenario, searched, presence_llr, exclusion_llr, max_position_sd_m)
-    return _refitted(scenario, searched, estimate, reports, reading)
+    return _refitted(scenario, searched, estimate,
+                     lambda sigma_db: _coarse_search(scenario, reports, reading, sigma_db))
 
 
 def _refitted(scenario: Scenario, searched: _Searched, estimate: JammerEstimate | None,
-              reports: Reports, reading: _Reading) -> JammerEstimate | None:
-    """A converged ``estimate`` of ``searched`` refined again on the coarse search of
-    ``reports`` (read by ``reading``) at the report spread of ``REPORT_SIGMA_CHOICES_DB``
+              search_at: Callable[[float], _Searched]) -> JammerEstimate | None:
+    """A converged ``estimate`` of ``searched`` refined again on the coarse search of the same
+    reports at the report spread of ``REPORT_SIGMA_CHOICES_DB`` (``search_at`` gives it)
     whose best hypothesis explains the reports best, if that is not ``searched``'s own;
     anything else as it is."""
     if estimate is None or not estimate.present:
@@ -133,7 +132,7 @@ def _refitted(scenario: Scenario, searched: _Searched, estimate: JammerEstimate 
     for sigma_db in REPORT_SIGMA_CHOICES_DB:
         if sigma_db == searched.evidence.report_sigma_db:
             continue
-        other = _coarse_search(scenario, reports, reading, sigma_db)
+        other = search_at(sigma_db)
         log_likelihood = other.evidence.no_jammer + float(other.llr.max())
         if log_likelihood > best_log_likelihood:
             best, best_log_likelihood = other, log_likelihood
@@ -244,7 +243,8 @@ def _counted(scenario: Scenario, reports: Reports, reading: _Reading, report_sig
     asks (else None); each one's log-likelihood ratio is then against the others alone."""
     def alone() -> JammerEstimate | None:
         return _refitted(scenario, searched, _decide(
-            scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M), reports, reading)
+            scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M),
+            lambda sigma_db: _coarse_search(scenario, reports, reading, sigma_db))
 
     if searched.llr.max() < PRESENCE_LLR or most == 1:
         return alone()
@@ -323,6 +323,70 @@ def locate_jammer(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, *,
                                        HYPOTHESES_LLR))
 
 
+class FrameFit(NamedTuple):
+    frame: int  # which of the frames fitted
+    estimate: JammerEstimate | None  # as ``estimate_jammer`` reads that frame, if present
+    # The reports' weighted log-likelihood with the frame's best coarse hypothesis, at the
+    # report spread of ``REPORT_SIGMA_CHOICES_DB`` that explains them best: comparable
+    # between the frames, converged or not.
+    log_likelihood: float
+
+
+class FramesFitted(NamedTuple):
+    # (F,): each frame's best coarse LLR at the decision's spread among the powers the
+    # scenario expects (its training range): what ranks the frames
+    coarse_llr: np.ndarray
+    fits: list[FrameFit]  # the first frame's, then those of the others fully fitted
+
+
+def fit_frames(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, frames_xy: np.ndarray,
+               *, fitted: int, reported_db: np.ndarray | None = None,
+               no_jammer_levels: np.ndarray | None = None,
+               no_jammer_db: SinrBelief | None = None,
+               report_sigma_db: float = REPORT_SIGMA_DB) -> FramesFitted | None:
+    """One jammer in each of the frames ``frames_xy`` (F, n, 2) where its path loss may read
+    the reports (``JammerEvidence.in_frame``), the first of them the reports' own places: each
+    frame's coarse search at ``report_sigma_db`` over the powers the scenario expects, and
+    ``estimate_jammer``'s whole estimate in the first frame and in the ``fitted`` others
+    whose coarse search explains the reports best. None with too few located reports. The
+    reports' tables are built once for each spread and read in every frame: most of the
+    cost is each frame's coarse search."""
+    reports = Reports.of(scenario, xy, levels, reported_db)
+    reading = _Reading(no_jammer_levels, no_jammer_db)
+    located = np.isfinite(reports.xy).all(axis=1)  # the rows the evidence keeps
+    evidence = {report_sigma_db: _evidence(scenario, reports, reading, report_sigma_db)}
+    if evidence[report_sigma_db] is None:
+        return None
+    searches: dict[tuple[int, float], _Searched] = {}
+
+    def search_at(frame: int, sigma_db: float) -> _Searched:
+        if sigma_db not in evidence:
+            evidence[sigma_db] = _evidence(scenario, reports, reading, sigma_db)
+        if (frame, sigma_db) not in searches:
+            searches[frame, sigma_db] = _searched(
+                scenario, evidence[sigma_db].in_frame(frames_xy[frame][located]))
+        return searches[frame, sigma_db]
+
+    search = _CoarseSearch.of(scenario)
+    expected_dbw = search.powers_dbw[_expected(scenario, search.powers_dbw)]
+    coarse_llr = np.array([
+        float(evidence[report_sigma_db].in_frame(frame_xy[located])
+              .log_likelihood_ratios(search.positions, expected_dbw).max())
+        for frame_xy in frames_xy])
+    fits = []
+    for frame in [0, *[int(f) for f in np.argsort(-coarse_llr) if f != 0][:fitted]]:
+        searched = search_at(frame, report_sigma_db)
+        estimate = _refitted(scenario, searched, _decide(
+            scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M),
+            lambda sigma_db, frame=frame: search_at(frame, sigma_db))
+        log_likelihood = max(
+            other.evidence.no_jammer + float(other.llr.max())
+            for other in (search_at(frame, sigma_db) for sigma_db in REPORT_SIGMA_CHOICES_DB))
+        fits.append(FrameFit(frame, estimate if estimate is not None and estimate.present
+                             else None, log_likelihood))
+    return FramesFitted(coarse_llr, fits)
+
+
 def _hypotheses(scenario: Scenario, searched: _Searched, mass: float, most: int,
                 presence_llr: float) -> JammerHypotheses | None:
     """``jammer_hypotheses`` on a coarse search."""
@@ -379,6 +443,20 @@ def _coarse_search(scenario: Scenario, reports: Reports, reading: _Reading,
     """The evidence of the located rows, the coarse search and its LLRs (positions x
     powers) of one jammer more than ``placed``; None with fewer than
     ``reading.min_measurements`` located rows."""
+    evidence = _evidence(scenario, reports, reading, report_sigma_db, placed)
+    return None if evidence is None else _searched(scenario, evidence)
+
+
+def _searched(scenario: Scenario, evidence: JammerEvidence) -> _Searched:
+    """The coarse search of ``evidence``, with its LLRs (positions x powers)."""
+    search = _CoarseSearch.of(scenario)
+    return _Searched(evidence, search,
+                     evidence.log_likelihood_ratios(search.positions, search.powers_dbw))
+
+
+def _evidence(scenario: Scenario, reports: Reports, reading: _Reading, report_sigma_db: float,
+              placed: Sequence[Placed] = ()) -> JammerEvidence | None:
+    """``_coarse_search``'s evidence."""
     located = np.isfinite(reports.xy).all(axis=1)
     reports = reports.take(located)
     no_jammer_levels, no_jammer_db = reading.no_jammer_levels, reading.no_jammer_db
@@ -389,15 +467,13 @@ def _coarse_search(scenario: Scenario, reports: Reports, reading: _Reading,
     if len(reports.xy) < reading.min_measurements:
         return None
     radio = RadioModel(scenario, shadowed=False)
-    search = _CoarseSearch.of(scenario)
-    evidence = JammerEvidence(
+    return JammerEvidence(
         radio, scenario.jammer.height_m, reports,
         independence_weights(reports.xy, reading.independent_spacing_m),
         sinr_beliefs(radio, reports.xy, no_jammer_levels, reading.shadowing_sigma_db,
                      no_jammer_db),
-        report_sigma_db, reading.outlier_share, np.ptp(search.powers_dbw), placed)
-    return _Searched(evidence, search,
-                     evidence.log_likelihood_ratios(search.positions, search.powers_dbw))
+        report_sigma_db, reading.outlier_share, np.ptp(_CoarseSearch.of(scenario).powers_dbw),
+        placed)
 
 
 def _refine(evidence: JammerEvidence, search: _CoarseSearch, llr: np.ndarray):

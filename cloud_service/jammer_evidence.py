@@ -19,6 +19,7 @@ claim the certainty of thousands of independent reports.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -42,39 +43,25 @@ _BLOCK_ELEMENTS = 2**20
 
 class Reports(NamedTuple):
     """The uploads a fit reads: where each was taken (n, 2), its level (n,) and its SINR (n,),
-    NaN where only the level was reported; reported SINRs come in steps of ``step_db``.
-    ``frame_xy`` (n, 2): where each stands from a jammer that drives, its position less the
-    jammer's travel between the upload's time and the one the fit places it at; None for a
-    still jammer (the positions themselves). The ground stations are read at ``xy``."""
+    NaN where only the level was reported; reported SINRs come in steps of ``step_db``."""
 
     xy: np.ndarray
     levels: np.ndarray
     sinr_db: np.ndarray
     step_db: float | None
-    frame_xy: np.ndarray | None = None
 
     @classmethod
     def of(cls, scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
-           reported_db: np.ndarray | None = None,
-           frame_xy: np.ndarray | None = None) -> Reports:
+           reported_db: np.ndarray | None = None) -> Reports:
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         levels = np.asarray(levels, dtype=np.int64).reshape(-1)
         sinr_db = (np.full(len(levels), np.nan) if reported_db is None
                    else np.asarray(reported_db, dtype=np.float64).reshape(-1))
-        if frame_xy is not None:
-            frame_xy = np.asarray(frame_xy, dtype=np.float64).reshape(xy.shape)
         return cls(xy, levels, sinr_db,
-                   scenario.uav.report_step_db if np.isfinite(sinr_db).any() else None,
-                   frame_xy)
-
-    @property
-    def from_jammer_xy(self) -> np.ndarray:
-        """Where each upload stands as the jammer's path loss reads it."""
-        return self.xy if self.frame_xy is None else self.frame_xy
+                   scenario.uav.report_step_db if np.isfinite(sinr_db).any() else None)
 
     def take(self, rows: np.ndarray) -> Reports:
-        return Reports(self.xy[rows], self.levels[rows], self.sinr_db[rows], self.step_db,
-                       None if self.frame_xy is None else self.frame_xy[rows])
+        return Reports(self.xy[rows], self.levels[rows], self.sinr_db[rows], self.step_db)
 
 
 def independence_weights(xy: np.ndarray, spacing_m: float) -> np.ndarray:
@@ -99,7 +86,7 @@ class JammerEvidence:
         the evidence is then for one jammer more, against those alone (``no_jammer`` is
         their log-likelihood), as their interference adds to the new one's in Eq. (3)."""
         xy, levels, reported_db = reports.xy, reports.levels, reports.sinr_db
-        self.xy = reports.from_jammer_xy  # the jammer's path loss reads these
+        self.xy = xy  # where the jammer's path loss reads them (``in_frame``)
         self.report_sigma_db = report_sigma_db
         _, _, co_channel = radio.serving(radio.gbs_received_power(xy))
         self.interference_db = 10.0 * np.log10(radio.noise_w + co_channel)
@@ -126,6 +113,16 @@ class JammerEvidence:
         self.no_jammer = float(weights @ tables.log_probability(belief.mean_db - placed_loss_db,
                                                                 levels, rows, reported_db))
 
+    def in_frame(self, frame_xy: np.ndarray) -> JammerEvidence:
+        """The same reports with the jammer's path loss read at ``frame_xy`` (n, 2), one per
+        measurement, while the ground stations' interference stays that of their places: a
+        jammer driving at v, at p at time T, weighs on a report taken at time t as a still
+        one at p would on a report taken at its place less v (t - T) (``driving_jammer``).
+        The tables do not depend on where the jammer stands, so every frame shares them."""
+        moved = copy.copy(self)
+        moved.xy = np.asarray(frame_xy, dtype=np.float64).reshape(self.xy.shape)
+        return moved
+
     def ratios_db(self, positions: np.ndarray, power_dbw: float | np.ndarray) -> np.ndarray:
         """r of a jammer at each of ``positions`` (H, 2) with effective power ``power_dbw``
         at every measurement: (H, n) dB."""
@@ -139,26 +136,27 @@ class JammerEvidence:
         """Log-likelihood of a jammer at each of ``positions`` (H, 2) with each effective
         power ``powers_dbw`` (P,), less that of no jammer: shape (H, P). Powers are read to
         the table's step and may span at most the ``power_span_db`` the tables were made for.
-        Summed by the compiled core unless ``JAMNAV_PLANNER=reference``, whose numpy gather is
-        the reference."""
+        Beyond the tables the likelihood no longer changes with r, so clipping the entries
+        is exact. Summed by the compiled core unless ``JAMNAV_PLANNER=reference``, whose
+        numpy gather is the reference."""
         power_steps = np.rint((powers_dbw - powers_dbw.min()) / _RATIO_STEP_DB).astype(np.int32)
         lowest_at = self.ratio_low_db - powers_dbw.min()  # path gain read at column 0
+        last_first = self.ratio_count - 1 - int(power_steps.max())
         out = np.zeros((len(positions), len(powers_dbw)))
-        compiled = chosen_planner() == "compiled"
-        # The numpy gather's temporaries hold every power; the compiled sums, none.
-        per_block = max(1, _BLOCK_ELEMENTS // ((1 if compiled else len(powers_dbw))
-                                               * len(self.xy)))
+        if chosen_planner() == "compiled":
+            compiled_module("_evidence").add_hypothesis_entries(
+                np.ascontiguousarray(positions, dtype=np.float64), np.ascontiguousarray(self.xy),
+                10.0 * math.log10(self.gap_m) - self.interference_db - lowest_at,
+                self.slope_db, self.gap_m**2, _RATIO_STEP_DB, self.ratio_count, last_first,
+                power_steps, self.table, out)
+            return out - self.no_jammer
+        # The gather's temporaries hold every power: blocks of hypotheses keep them small.
+        per_block = max(1, _BLOCK_ELEMENTS // (len(powers_dbw) * len(self.xy)))
         for start in range(0, len(positions), per_block):
             block = positions[start : start + per_block]
-            gain_db = self.ratios_db(block, 0.0)
-            # Beyond the tables the likelihood no longer changes with r: clipping is exact.
-            first_entry = np.clip(np.rint((gain_db - lowest_at) / _RATIO_STEP_DB), 0,
-                                  self.ratio_count - 1 - power_steps.max()).astype(np.int32)
-            first_entry += self.row_start
-            sums = out[start : start + len(block)]
-            if compiled:
-                compiled_module("_evidence").add_table_entries(
-                    np.ascontiguousarray(first_entry.T), power_steps, self.table, sums)
-            else:
-                sums[:] = self.table[first_entry[:, None, :] + power_steps[:, None]].sum(axis=-1)
+            first_entry = np.clip(
+                np.rint((self.ratios_db(block, 0.0) - lowest_at) / _RATIO_STEP_DB), 0,
+                last_first).astype(np.int32) + self.row_start
+            out[start : start + len(block)] = self.table[
+                first_entry[:, None, :] + power_steps[:, None]].sum(axis=-1)
         return out - self.no_jammer

@@ -4,10 +4,12 @@
 jammer's power (``weighted_report_tables``: read from the report tables of
 ``cloud_service.report_likelihood``, whose numpy gathers are the reference, with the same
 arithmetic, so bit for bit the same), and for each hypothesis and each power, those tables'
-entries added up (``add_table_entries``: numpy builds an index per hypothesis, power and
-measurement, and gathers and sums them in float32; here each measurement's entries are read
-where they lie and added in float64, so the sums agree with the reference's within its float32
-rounding)."""
+entries added up (``add_hypothesis_entries``: numpy works out each hypothesis's path gain to
+every measurement, builds an index per hypothesis, power and measurement, and gathers and sums
+them in float32; here each measurement's gains to every hypothesis are taken at once with
+glibc's vector log, its entries read where they lie and added in float64, so the sums agree
+with the reference's within its float32 rounding wherever no gain lies on a tie between two
+entries)."""
 
 cdef extern from *:
     """
@@ -17,38 +19,75 @@ cdef extern from *:
     """
     const char *COMPILED_SOURCE_DIGEST
 
-from libc.math cimport fabs, isfinite, rint
+cdef extern from "_vector_math.h" nogil:
+    void log_many(const double *x, double *out, int n)
+
+from libc.math cimport fabs, isfinite, log, rint
+from libc.stdlib cimport free, malloc
 
 import numpy as np
 
 SOURCE_DIGEST = COMPILED_SOURCE_DIGEST.decode()
+# Measurements whose tables are read together for each hypothesis: their rows stay in cache
+# while every hypothesis reads them, and a hypothesis's sums in registers while it does.
+DEF _CHUNK = 32
 
 
-def add_table_entries(const int[:, ::1] first_entry, const int[::1] power_offsets,
-                      const float[::1] table, double[:, ::1] out):
-    """``out[h, p]`` += the sum over measurements i of ``table[first_entry[i, h] +
-    power_offsets[p]]``: hypothesis h's log-likelihood at power p, each measurement's table
-    entry for the lowest power at ``first_entry`` and the others ``power_offsets`` after it.
-    Measurement by measurement, so that its entries stay in cache for every hypothesis."""
-    cdef Py_ssize_t count = first_entry.shape[0], hypotheses = first_entry.shape[1]
+def add_hypothesis_entries(const double[:, ::1] positions, const double[:, ::1] xy,
+                           const double[::1] offset_db, double slope_db, double gap_sq_m2,
+                           double step_db, Py_ssize_t row_length, Py_ssize_t last_first,
+                           const int[::1] power_offsets, const float[::1] table,
+                           double[:, ::1] out):
+    """``out[h, p]`` += the sum over measurements i of ``table[i * row_length + e(h, i) +
+    power_offsets[p]]``: hypothesis h's log-likelihood at power p. Measurement i's first
+    entry is its path gain from ``positions[h]`` to ``xy[i]``, ``offset_db[i] - slope_db
+    * log10(squared distance + gap_sq_m2)``, in ``step_db`` steps (rounded half to even,
+    clipped to [0, ``last_first``]). ``_CHUNK`` measurements at a time."""
+    cdef Py_ssize_t count = xy.shape[0], hypotheses = positions.shape[0]
     cdef Py_ssize_t powers = power_offsets.shape[0], h, i, p
     if out.shape[0] != hypotheses or out.shape[1] != powers:
         raise ValueError(f"out of shape ({out.shape[0]}, {out.shape[1]}) for {hypotheses} "
                          f"hypotheses and {powers} powers")
+    if positions.shape[1] != 2 or xy.shape[1] != 2 or offset_db.shape[0] != count:
+        raise ValueError("positions and measurements are (x, y), one offset a measurement")
     if powers == 0 or hypotheses == 0 or count == 0:
         return
-    offsets, firsts = np.asarray(power_offsets), np.asarray(first_entry)
-    if offsets.min() + firsts.min() < 0 or offsets.max() + firsts.max() >= table.shape[0]:
+    offsets = np.asarray(power_offsets)
+    if offsets.min() < 0 or last_first < 0 or (
+            (count - 1) * row_length + last_first + offsets.max() >= table.shape[0]):
         raise ValueError("an entry beyond the table")
+    cdef double per_log = slope_db / log(10.0) / step_db, dx, dy, entry
+    cdef Py_ssize_t chunk, done, c, first
+    cdef double *buffers = <double *>malloc((2 * _CHUNK + powers) * sizeof(double))
+    if buffers == NULL:
+        raise MemoryError()
+    cdef double *squared = buffers
+    cdef double *logs = buffers + _CHUNK
+    cdef double *sums = buffers + 2 * _CHUNK
     cdef const float *entries
-    cdef double *sums
-    with nogil:
-        for i in range(count):
-            for h in range(hypotheses):
-                entries = &table[first_entry[i, h]]
-                sums = &out[h, 0]
-                for p in range(powers):
-                    sums[p] += entries[power_offsets[p]]
+    try:
+        with nogil:
+            for done in range(0, count, _CHUNK):
+                chunk = min(_CHUNK, count - done)
+                for h in range(hypotheses):
+                    for c in range(chunk):
+                        dx = positions[h, 0] - xy[done + c, 0]
+                        dy = positions[h, 1] - xy[done + c, 1]
+                        squared[c] = dx * dx + dy * dy + gap_sq_m2
+                    log_many(squared, logs, <int>chunk)
+                    for p in range(powers):
+                        sums[p] = 0.0
+                    for c in range(chunk):
+                        entry = rint(offset_db[done + c] / step_db - per_log * logs[c])
+                        first = 0 if not entry > 0 else (
+                            last_first if entry > last_first else <Py_ssize_t>entry)
+                        entries = &table[(done + c) * row_length + first]
+                        for p in range(powers):
+                            sums[p] += entries[power_offsets[p]]
+                    for p in range(powers):
+                        out[h, p] += sums[p]
+    finally:
+        free(buffers)
 
 
 cdef inline Py_ssize_t _entry(double position, double low, double step,

@@ -9,8 +9,13 @@ import math
 import numpy as np
 import pytest
 
-from cloud_service.driving_jammer import HEADINGS, estimate_driving_jammer, velocity_hypotheses
-from cloud_service.jammer_estimation import estimate_jammer
+from cloud_service.driving_jammer import (
+    HEADINGS,
+    driving_frames,
+    estimate_driving_jammer,
+    velocity_hypotheses,
+)
+from cloud_service.jammer_estimation import estimate_jammer, fit_frames
 from cloud_service.jammer_evidence import JammerEvidence, Reports, independence_weights
 from cloud_service.no_jammer_belief import sinr_beliefs
 from shared.radio import JammerParams, RadioModel
@@ -37,7 +42,7 @@ def test_the_velocities_stand_still_first_then_every_speed_each_way(scenario):
 def test_the_path_loss_reads_the_frame_and_the_ground_stations_the_places(scenario):
     """Uploads read in a frame moved by d from where they were taken: a jammer at p weighs on
     them as one at p + d on the uploads where they were, while the ground stations'
-    interference stays that of the places."""
+    interference and the reports' tables stay those of the places."""
     # Bound: the two ways round differ by float64's rounding of coordinates under 200 m
     # (a few 1e-14 m), which moves r by well under 1e-11 dB.
     radio = RadioModel(scenario, shadowed=False)
@@ -45,20 +50,15 @@ def test_the_path_loss_reads_the_frame_and_the_ground_stations_the_places(scenar
     xy = rng.uniform(-50, 50, size=(200, 2))
     levels = radio.evaluate(xy).level
     shift = np.array([12.5, -4.0])
-    beliefs = sinr_beliefs(radio, xy, levels, None, None)
-
-    def evidence(frame_xy):
-        reports = Reports.of(scenario, xy, levels, frame_xy=frame_xy)
-        return JammerEvidence(radio, scenario.jammer.height_m, reports,
-                              independence_weights(xy, 5.0), beliefs, 1.0, 0.01, 20.0)
-
-    moved, placed = evidence(xy - shift), evidence(None)
+    placed = JammerEvidence(radio, scenario.jammer.height_m, Reports.of(scenario, xy, levels),
+                            independence_weights(xy, 5.0), sinr_beliefs(radio, xy, levels, None,
+                                                                        None), 1.0, 0.01, 20.0)
+    moved = placed.in_frame(xy - shift)
     jammers = rng.uniform(-40, 40, size=(7, 2))
     np.testing.assert_allclose(moved.ratios_db(jammers, -10.0),
                                placed.ratios_db(jammers + shift, -10.0), rtol=0, atol=1e-9)
-    np.testing.assert_array_equal(moved.interference_db, placed.interference_db)
-    assert Reports.of(scenario, xy, levels, frame_xy=xy - shift).take(
-        np.arange(3)).frame_xy.tolist() == (xy[:3] - shift).tolist()
+    assert moved.interference_db is placed.interference_db and moved.table is placed.table
+    assert placed.xy.tolist() == xy.tolist()  # the frame is the moved copy's alone
 
 
 @pytest.fixture
@@ -104,9 +104,9 @@ def test_a_jammer_driving_a_line_is_placed_where_it_is_and_its_velocity_found(
 
 def test_a_still_jammer_is_fitted_still():
     """icc2021's shadowed world, a jammer standing at (10, -10), 800 reports over 20 s: one
-    velocity's frame explains them a little better than standing still (by 0.4 nats), by less
-    than BIC's penalty for two parameters more (ln 800, 6.7), so the estimate is the still
-    fit's, with no velocity."""
+    velocity's frame explains them a little better than standing still, by less than BIC's
+    penalty for two parameters more (ln 800, 6.7), so the estimate is the still fit's, with
+    no velocity."""
     # The position's bound is the shadowed world's still fit (measured 7.6 m), not
     # arithmetic; the rest is exact.
     shadowed = variant(load_scenario("icc2021-shadowed"),
@@ -114,13 +114,16 @@ def test_a_still_jammer_is_fitted_still():
     xy, times, levels, no_jammer = reports_of(shadowed, lambda t: np.full_like(t, 10.0),
                                               np.random.default_rng(15), per_second=40)
     now = float(times.max())
-    still = estimate_jammer(shadowed, xy, levels, no_jammer_levels=no_jammer)
-    driving = [estimate_jammer(shadowed, xy, levels, no_jammer_levels=no_jammer,
-                               jammer_frame_xy=xy - (times - now)[:, None] * velocity)
-               for velocity in velocity_hypotheses(shadowed)[1:]]
-    best = max(fit.log_likelihood_ratio for fit in driving if fit is not None and fit.present)
-    assert 0.0 < best - still.log_likelihood_ratio < math.log(len(xy))
+    velocities = velocity_hypotheses(shadowed)
+    every = fit_frames(shadowed, xy, levels, driving_frames(xy, times, now, velocities),
+                       fitted=len(velocities), no_jammer_levels=no_jammer)
+    still = next(fit for fit in every.fits if fit.frame == 0)
+    best = max(fit.log_likelihood for fit in every.fits if fit.frame != 0)
+    assert 0.0 < best - still.log_likelihood < math.log(len(xy))
     found = estimate_driving_jammer(shadowed, xy, times, levels, now,
                                     no_jammer_levels=no_jammer)
-    assert found == still and found.present and found.vx_mps is None
+    assert found == still.estimate == estimate_jammer(shadowed, xy, levels,
+                                                      no_jammer_levels=no_jammer)
+    assert found.present and found.vx_mps is None
     assert math.hypot(found.x - 10.0, found.y + 10.0) <= 10.0
+

@@ -57,7 +57,10 @@ def test_the_sums_agree_with_the_gather_within_its_float32_rounding(scenario, mo
     reference = evidence.log_likelihood_ratios(positions, powers)
     # The reference adds float32 entries in float32, in any order within gamma(n) of the sum
     # of their magnitudes (read with |entries| through the same gather); the compiled sums add
-    # in float64, and both then subtract the no-jammer term in float64.
+    # in float64, and both then subtract the no-jammer term in float64. The two work out each
+    # path gain in their own order (log10, or glibc's vector log over ln 10: within a few
+    # 1e-13 dB), which picks another entry only where a gain lies that near a tie between two
+    # entries: about one chance in 1e6 over these 2,500 x 300 gains.
     magnitudes = copy.copy(evidence)
     magnitudes.table, magnitudes.no_jammer = np.abs(evidence.table), 0.0
     magnitude = magnitudes.log_likelihood_ratios(positions, powers)
@@ -85,17 +88,28 @@ def test_an_estimate_is_the_same_either_way(scenario, monkeypatch):
     assert abs(10 * np.log10(compiled.power_w / reference.power_w)) < 1e-3 * compiled.sd_power_db
 
 
-def test_an_entry_beyond_the_table_is_refused():
-    add = compiled_module("_evidence").add_table_entries
-    table = np.zeros(10, dtype=np.float32)
-    out = np.zeros((1, 2))
+def test_each_measurements_entry_is_its_path_gain_in_steps_and_none_beyond_the_table():
+    """Hand-worked: a hypothesis at the origin, measurements at (3, 4) and (0, 0), a gap of
+    sqrt(75) m, 10 dB a decade, offsets of 25 dB and steps of 1 dB: squared distances 100 and
+    75, gains 25 - 20 = 5 and 25 - 18.75 = 6.25 steps, so entries 5 and 6 of rows 0 and 1;
+    offsets far above and below the tables clip to their last and first entries."""
+    add = compiled_module("_evidence").add_hypothesis_entries
+    table = np.arange(20, dtype=np.float32)  # two rows of ten: entry k of row i is 10 i + k
+    origin, xy = np.zeros((1, 2)), np.array([[3.0, 4.0], [0.0, 0.0]])
+    offsets = np.array([0, 2], dtype=np.int32)
+
+    def summed(offset_db, last_first=7):
+        out = np.zeros((1, 2))
+        add(origin, xy, np.asarray(offset_db, dtype=np.float64), 10.0, 75.0, 1.0, 10,
+            last_first, offsets, table, out)
+        return out.tolist()
+
+    assert summed([25.0, 25.0]) == [[5.0 + 16.0, 7.0 + 18.0]]
+    assert summed([1e6, -1e6]) == [[7.0 + 10.0, 9.0 + 12.0]]
     with pytest.raises(ValueError, match="beyond the table"):
-        add(np.array([[8]], dtype=np.int32), np.array([0, 2], dtype=np.int32), table, out)
+        summed([25.0, 25.0], last_first=8)  # row 1's entry 8 + 2 is the table's 21st
     with pytest.raises(ValueError, match="out of shape"):
-        add(np.array([[0]], dtype=np.int32), np.array([0], dtype=np.int32), table, out)
-    add(np.array([[3], [4]], dtype=np.int32), np.array([0, 5], dtype=np.int32),
-        np.arange(10, dtype=np.float32), out)
-    assert out.tolist() == [[3.0 + 4.0, 8.0 + 9.0]]
+        add(origin, xy, np.zeros(2), 10.0, 75.0, 1.0, 10, 7, offsets, table, np.zeros((2, 2)))
 
 
 @pytest.mark.parametrize("step_db", [None, 0.5])
