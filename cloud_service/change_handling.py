@@ -5,10 +5,12 @@ and where the handling of one change stands, the following of its jammer include
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from cloud_service.estimated_jammer import JammerEstimate
 from cloud_service.jammer_tracking import WindowedTracker
+from shared.scenario import OnlineMap
 
 
 @dataclass(frozen=True)
@@ -57,6 +59,8 @@ class HandledChange:
     measurements: int  # stored since ``start``
     estimate: JammerEstimate | None = None
     tried_at: int = 0  # post-change measurements at the last estimate attempt
+    driving_tries: int = 0  # fits as a driving jammer (``driving_due``)
+    driving_tried_until: float = -math.inf  # when the newest upload of the last was taken
     tries: int = 0  # estimate attempts
     fitted_at: int = 0  # ... at the last fit
     failure_logged: bool = False
@@ -72,6 +76,26 @@ class HandledChange:
         one jammer, unless the change was estimated to have several."""
         several = self.estimate is not None and bool(self.estimate.others)
         return self.tracker is not None and not several and self.tracker.due(latest)
+
+    def driving_due(self, latest: float, online_map: OnlineMap) -> bool:
+        """Whether uploads up to ``latest`` call for the change to be fitted as a jammer that
+        drives (``driving_jammer``), every ``online_map.driving_fit_every_s``: while its
+        estimate drives, to follow it; while it is of one jammer standing still or none
+        converged, to try, once the uploads span ``online_map.driving_fit_after_s`` and at
+        most ``online_map.driving_fits`` times (a still fit of a driving jammer lies behind
+        it, or nowhere)."""
+        if latest - self.driving_tried_until < online_map.driving_fit_every_s:
+            return False
+        if self.estimate is None:
+            return self._driving_tries_left(latest, online_map)
+        if self.estimate.others or not self.estimate.present:
+            return False
+        return (self.estimate.vx_mps is not None
+                or self._driving_tries_left(latest, online_map))
+
+    def _driving_tries_left(self, latest: float, online_map: OnlineMap) -> bool:
+        return (latest - self.start >= online_map.driving_fit_after_s
+                and self.driving_tries < online_map.driving_fits)
 
     @property
     def phase(self) -> str:
@@ -92,6 +116,7 @@ class HandledChange:
         if self.fitted_at >= config.settle_after or (
                 n >= config.settle_after and n - self.fitted_at < config.refine_every):
             return "settle"
-        if n - self.fitted_at >= config.refine_every:
+        # A driving estimate is fitted again by its own schedule (``driving_due``).
+        if self.estimate.vx_mps is None and n - self.fitted_at >= config.refine_every:
             return "estimate"
         return None

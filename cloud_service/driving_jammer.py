@@ -17,8 +17,10 @@ import math
 
 import numpy as np
 
+from cloud_service.estimate_inputs import EstimateInputs
 from cloud_service.estimated_jammer import JammerEstimate
 from cloud_service.jammer_estimation import fit_frames
+from shared.measurements import MeasurementBatch
 from shared.scenario import Scenario
 
 HEADINGS = 16  # of the velocity grid, evenly round the circle
@@ -27,6 +29,9 @@ SPEED_STEP_MPS = 1.0  # of the velocity grid, over the scenario's driving speeds
 # convoy's crossing (bench_tracking's 36 moments, 4 UAVs), wherever the best of all 81 full
 # estimates was the convoy's own velocity, it ranked among the coarse search's first six.
 FULLY_FITTED = 6
+# The cost of a fit grows with the reports it reads: a larger fleet's are thinned to about
+# as many as four UAVs bring in 30 s (a fit of which takes about a second on one core).
+MOST_REPORTS = 1200
 
 
 def velocity_hypotheses(scenario: Scenario) -> np.ndarray:
@@ -89,3 +94,17 @@ def estimate_driving_jammer(scenario: Scenario, xy: np.ndarray, times: np.ndarra
     return best.estimate._replace(vx_mps=float(velocity[0]), vy_mps=float(velocity[1]),
                                   sd_vx_mps=float(sd[0]), sd_vy_mps=float(sd[1]))
 
+
+def driving_refit(inputs: EstimateInputs, data: MeasurementBatch) -> JammerEstimate | None:
+    """A driving jammer fitted to the latest ``online_map.driving_fit_window_s`` of a
+    change's uploads ``data`` (every k-th of them where more than ``MOST_REPORTS``), placed
+    where it will be when the map corrected for it flies (the cloud's latency after the
+    newest upload); None where it does not drive."""
+    scenario = inputs.models.scenario
+    newest = float(data.times.max())
+    rows = np.flatnonzero(data.times >= newest - scenario.online_map.driving_fit_window_s)
+    recent = data.take(rows[:: math.ceil(len(rows) / MOST_REPORTS)])
+    xy, levels, keywords = inputs.of(recent)
+    driving = estimate_driving_jammer(scenario, xy, recent.times, levels,
+                                      newest + scenario.online_map.cloud_latency_s, **keywords)
+    return driving if driving is not None and driving.vx_mps is not None else None

@@ -25,6 +25,7 @@ import numpy as np
 
 from cloud_service.change_detection import ChangeDetector, DetectorCheck
 from cloud_service.change_handling import HandledChange, RetrainConfig
+from cloud_service.driving_jammer import driving_refit
 from cloud_service.estimate_inputs import EstimateInputs
 from cloud_service.estimated_jammer import JammerEstimate, JammerHypotheses
 from cloud_service.jammer_estimation import locate_jammer
@@ -85,7 +86,11 @@ class OnlineSinrMapper:
        is fitted to the prior plus every post-change upload and published at once, with the
        estimate;
     3. every ``retrain.refine_every`` further measurements, estimate and fit again, until
-       ``retrain.settle_after``; then the detector re-arms on the final map.
+       ``retrain.settle_after``; then the detector re-arms on the final map. While the
+       estimate is of one still jammer or none, the change is also tried as a driving one a
+       few times (``HandledChange.driving_due``; ``driving_jammer``); one that drives
+       corrects the map where it will be when the map flies, and is fitted again every
+       ``online_map.driving_fit_every_s`` while it drives.
     4. from the first corrected map on (an estimate's or a provisional one), every report is
        weighed against the jammer it was corrected for (``WithdrawalTest``; at a fit, the
        post-change reports it was fitted on first). Once they show that jammer gone or
@@ -412,6 +417,8 @@ class OnlineSinrMapper:
         if self._busy or self._change is None:
             return None
         job = self._change.next_job(self.retrain)
+        if job is None and self._change.driving_due(self._latest, self.scenario.online_map):
+            job = "drive"
         if job is None and self._change.tracking_due(self._latest):
             job = "track"
         self._busy = job is not None
@@ -433,6 +440,8 @@ class OnlineSinrMapper:
                 self._try_estimate(change, data)
             elif job == "fit":  # the DNN alone, the jammer neither placed nor confirmed
                 self._fit(change, data, None)
+            elif job == "drive":
+                self._try_driving(change, data)
             elif job == "track":
                 self._follow(change)
             else:  # "settle": the map stands, the detector watches it
@@ -468,6 +477,23 @@ class OnlineSinrMapper:
         # place it may be in proportion to its probability, until an estimate converges.
         if located.hypotheses is not None:
             self._fit(change, data, located.hypotheses)
+
+    def _try_driving(self, change: HandledChange, data: MeasurementBatch) -> None:
+        """The change fitted as a driving jammer (``HandledChange.driving_due``): where one
+        drives, the map is corrected for it and published; where the one it had no longer
+        drives, the jammer is estimated standing still; else all stays as it is."""
+        drove = change.estimate is not None and change.estimate.vx_mps is not None
+        if not drove:
+            change.driving_tries += 1
+        change.driving_tried_until = float(data.times.max())
+        driving = driving_refit(self._inputs, data)
+        if self._closing.is_set():
+            return
+        if driving is not None:
+            change.estimate = driving
+            self._fit(change, data, driving)
+        elif drove:
+            self._try_estimate(change, data)
 
     def _fit(self, change: HandledChange, data: MeasurementBatch,
              jammer: JammerEstimate | JammerHypotheses | None) -> None:
@@ -540,7 +566,8 @@ class OnlineSinrMapper:
         # The estimate behind the map, when one converged; a provisional map has none.
         estimate = None if provisional else jammer
         velocity = None if change.tracker is None else change.tracker.velocity()
-        if estimate is not None and not estimate.others and velocity is not None:
+        if (estimate is not None and not estimate.others and estimate.vx_mps is None
+                and velocity is not None):
             estimate = estimate._replace(**velocity)
         weights = to_bytes(result.network)
         with self._lock:

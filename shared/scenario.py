@@ -335,6 +335,15 @@ class OnlineMap(_Strict):
     # While it handles a change, the cloud follows the jammer through windows of this many
     # seconds of uploads, each estimated alone (cloud_service.jammer_tracking).
     tracking_window_s: Positive = 5.0
+    # While a change's estimate is of one still jammer or none, the cloud tries it as a
+    # driving one (cloud_service.driving_jammer) once its uploads span driving_fit_after_s,
+    # then every driving_fit_every_s, at most driving_fits times, and fits one that drives
+    # again every driving_fit_every_s: the latest driving_fit_window_s of uploads read at
+    # once in the frame of each velocity the training's vehicles may have.
+    driving_fit_after_s: NonNegative = 10.0
+    driving_fit_every_s: Positive = 3.0
+    driving_fits: Annotated[int, Field(ge=0, le=1000)] = 0  # the paper's still jammers
+    driving_fit_window_s: Positive = 30.0
 
 
 class Scenario(_Strict):
