@@ -29,8 +29,9 @@ import numpy as np
 
 SOURCE_DIGEST = COMPILED_SOURCE_DIGEST.decode()
 # Measurements whose tables are read together for each hypothesis: their rows stay in cache
-# while every hypothesis reads them, and a hypothesis's sums in registers while it does.
-DEF _CHUNK = 32
+# while every hypothesis reads them, and a hypothesis's sums stay in cache while it does.
+cdef enum:
+    _CHUNK = 32
 
 
 def add_hypothesis_entries(const double[:, ::1] positions, const double[:, ::1] xy,
@@ -67,7 +68,8 @@ def add_hypothesis_entries(const double[:, ::1] positions, const double[:, ::1] 
     cdef const float *entries
     try:
         with nogil:
-            for done in range(0, count, _CHUNK):
+            done = 0
+            while done < count:
                 chunk = min(_CHUNK, count - done)
                 for h in range(hypotheses):
                     for c in range(chunk):
@@ -86,6 +88,7 @@ def add_hypothesis_entries(const double[:, ::1] positions, const double[:, ::1] 
                             sums[p] += entries[power_offsets[p]]
                     for p in range(powers):
                         out[h, p] += sums[p]
+                done += chunk
     finally:
         free(buffers)
 

@@ -127,3 +127,26 @@ def test_a_still_jammer_is_fitted_still():
     assert found.present and found.vx_mps is None
     assert math.hypot(found.x - 10.0, found.y + 10.0) <= 10.0
 
+
+
+def test_a_velocity_must_beat_standing_still_where_no_still_estimate_converges(scenario,
+                                                                                 monkeypatch):
+    """Standing still's log-likelihood (its best coarse hypothesis) counts whether or not its
+    estimate converged: a converged velocity 0.1 nats short of BIC's penalty (ln 800) over
+    it gives no jammer, 0.1 nats beyond it gives that velocity's estimate."""
+    import cloud_service.driving_jammer as driving_jammer
+    from cloud_service.estimated_jammer import JammerEstimate
+    from cloud_service.jammer_estimation import FrameFit, FramesFitted
+
+    east = int(np.flatnonzero((velocity_hypotheses(scenario) == (3.0, 0.0)).all(axis=1))[0])
+    placed = JammerEstimate(True, 1.0, 2.0, 1.0, 10.0, 1.0, 1.0, 1.0, 800, 20.0)
+    xy, times = np.zeros((3, 2)), np.arange(3.0)
+
+    def fitted(gain):
+        return FramesFitted(np.zeros(len(velocity_hypotheses(scenario))),
+                            [FrameFit(0, None, -100.0), FrameFit(east, placed, -100.0 + gain)])
+
+    for gain, expected in ((math.log(800) - 0.1, None), (math.log(800) + 0.1, (3.0, 0.0))):
+        monkeypatch.setattr(driving_jammer, "fit_frames", lambda *a, gain=gain, **k: fitted(gain))
+        found = estimate_driving_jammer(scenario, xy, times, np.zeros(3), 2.0)
+        assert (None if found is None else (found.vx_mps, found.vy_mps)) == expected
