@@ -73,7 +73,7 @@ def estimate_driving_jammer(scenario: Scenario, xy: np.ndarray, times: np.ndarra
                         fitted=FULLY_FITTED, **inputs)
     if fitted is None:
         return None
-    still, *others = fitted.fits
+    still, *others = fitted
     converged = [fit for fit in others if fit.estimate is not None]
     if not converged:
         return still.estimate

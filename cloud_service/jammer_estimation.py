@@ -332,23 +332,17 @@ class FrameFit(NamedTuple):
     log_likelihood: float
 
 
-class FramesFitted(NamedTuple):
-    # (F,): each frame's best coarse LLR at the decision's spread among the powers the
-    # scenario expects (its training range): what ranks the frames
-    coarse_llr: np.ndarray
-    fits: list[FrameFit]  # the first frame's, then those of the others fully fitted
-
-
 def fit_frames(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, frames_xy: np.ndarray,
                *, fitted: int, reported_db: np.ndarray | None = None,
                no_jammer_levels: np.ndarray | None = None,
                no_jammer_db: SinrBelief | None = None,
-               report_sigma_db: float = REPORT_SIGMA_DB) -> FramesFitted | None:
+               report_sigma_db: float = REPORT_SIGMA_DB) -> list[FrameFit] | None:
     """One jammer in each of the frames ``frames_xy`` (F, n, 2) where its path loss may read
     the reports (``JammerEvidence.in_frame``), the first of them the reports' own places: each
     frame's coarse search at ``report_sigma_db`` over the powers the scenario expects, and
     ``estimate_jammer``'s whole estimate in the first frame and in the ``fitted`` others
-    whose coarse search explains the reports best. None with too few located reports. The
+    whose coarse search (its best LLR at ``report_sigma_db`` among those powers) explains the
+    reports best: their fits, the first frame's first. None with too few located reports. The
     reports' tables are built once for each spread and read in every frame: most of the
     cost is each frame's coarse search."""
     reports = Reports.of(scenario, xy, levels, reported_db)
@@ -357,6 +351,7 @@ def fit_frames(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, frames_xy
     evidence = {report_sigma_db: _evidence(scenario, reports, reading, report_sigma_db)}
     if evidence[report_sigma_db] is None:
         return None
+    search = _CoarseSearch.of(scenario)
     searches: dict[tuple[int, float], _Searched] = {}
 
     def search_at(frame: int, sigma_db: float) -> _Searched:
@@ -364,10 +359,9 @@ def fit_frames(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, frames_xy
             evidence[sigma_db] = _evidence(scenario, reports, reading, sigma_db)
         if (frame, sigma_db) not in searches:
             searches[frame, sigma_db] = _searched(
-                scenario, evidence[sigma_db].in_frame(frames_xy[frame][located]))
+                search, evidence[sigma_db].in_frame(frames_xy[frame][located]))
         return searches[frame, sigma_db]
 
-    search = _CoarseSearch.of(scenario)
     expected_dbw = search.powers_dbw[_expected(scenario, search.powers_dbw)]
     coarse_llr = np.array([
         float(evidence[report_sigma_db].in_frame(frame_xy[located])
@@ -384,7 +378,7 @@ def fit_frames(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, frames_xy
             for other in (search_at(frame, sigma_db) for sigma_db in REPORT_SIGMA_CHOICES_DB))
         fits.append(FrameFit(frame, estimate if estimate is not None and estimate.present
                              else None, log_likelihood))
-    return FramesFitted(coarse_llr, fits)
+    return fits
 
 
 def _hypotheses(scenario: Scenario, searched: _Searched, mass: float, most: int,
@@ -444,12 +438,11 @@ def _coarse_search(scenario: Scenario, reports: Reports, reading: _Reading,
     powers) of one jammer more than ``placed``; None with fewer than
     ``reading.min_measurements`` located rows."""
     evidence = _evidence(scenario, reports, reading, report_sigma_db, placed)
-    return None if evidence is None else _searched(scenario, evidence)
+    return None if evidence is None else _searched(_CoarseSearch.of(scenario), evidence)
 
 
-def _searched(scenario: Scenario, evidence: JammerEvidence) -> _Searched:
-    """The coarse search of ``evidence``, with its LLRs (positions x powers)."""
-    search = _CoarseSearch.of(scenario)
+def _searched(search: _CoarseSearch, evidence: JammerEvidence) -> _Searched:
+    """``search`` of ``evidence``, with its LLRs (positions x powers)."""
     return _Searched(evidence, search,
                      evidence.log_likelihood_ratios(search.positions, search.powers_dbw))
 

@@ -117,8 +117,8 @@ def test_a_still_jammer_is_fitted_still():
     velocities = velocity_hypotheses(shadowed)
     every = fit_frames(shadowed, xy, levels, driving_frames(xy, times, now, velocities),
                        fitted=len(velocities), no_jammer_levels=no_jammer)
-    still = next(fit for fit in every.fits if fit.frame == 0)
-    best = max(fit.log_likelihood for fit in every.fits if fit.frame != 0)
+    still = next(fit for fit in every if fit.frame == 0)
+    best = max(fit.log_likelihood for fit in every if fit.frame != 0)
     assert 0.0 < best - still.log_likelihood < math.log(len(xy))
     found = estimate_driving_jammer(shadowed, xy, times, levels, now,
                                     no_jammer_levels=no_jammer)
@@ -136,15 +136,14 @@ def test_a_velocity_must_beat_standing_still_where_no_still_estimate_converges(s
     it gives no jammer, 0.1 nats beyond it gives that velocity's estimate."""
     import cloud_service.driving_jammer as driving_jammer
     from cloud_service.estimated_jammer import JammerEstimate
-    from cloud_service.jammer_estimation import FrameFit, FramesFitted
+    from cloud_service.jammer_estimation import FrameFit
 
     east = int(np.flatnonzero((velocity_hypotheses(scenario) == (3.0, 0.0)).all(axis=1))[0])
     placed = JammerEstimate(True, 1.0, 2.0, 1.0, 10.0, 1.0, 1.0, 1.0, 800, 20.0)
     xy, times = np.zeros((3, 2)), np.arange(3.0)
 
     def fitted(gain):
-        return FramesFitted(np.zeros(len(velocity_hypotheses(scenario))),
-                            [FrameFit(0, None, -100.0), FrameFit(east, placed, -100.0 + gain)])
+        return [FrameFit(0, None, -100.0), FrameFit(east, placed, -100.0 + gain)]
 
     for gain, expected in ((math.log(800) - 0.1, None), (math.log(800) + 0.1, (3.0, 0.0))):
         monkeypatch.setattr(driving_jammer, "fit_frames", lambda *a, gain=gain, **k: fitted(gain))
