@@ -6,6 +6,7 @@ pyproject.toml. Portable flags only: a wheel built on one x86_64 CPU must run on
 (planning/_dense.h and shared/_vector_math.h pick wider vector code when the module loads)."""
 
 import importlib.util
+import os
 from pathlib import Path
 
 from Cython.Build import cythonize
@@ -33,6 +34,10 @@ def compiled(name: str, **options) -> Extension:
     )
 
 
+# The modules are translated and compiled on every core: the C compiler's ~55 s of one core
+# is most of an install's time.
+CORES = os.cpu_count() or 1
+
 setup(ext_modules=cythonize([
     compiled("planning._lookahead", libraries=["mvec"]),  # glibc's vector math
     compiled("planning._routes"),
@@ -40,4 +45,4 @@ setup(ext_modules=cythonize([
     compiled("planning._evidence", libraries=["mvec"]),
     compiled("planning._measuring"),
     compiled("shared._radio", libraries=["mvec"]),
-], language_level=3))
+], language_level=3, nthreads=CORES), options={"build_ext": {"parallel": CORES}})

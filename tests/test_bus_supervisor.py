@@ -213,9 +213,8 @@ off_s = 3.0
 
 @pytest.mark.parametrize(("latency", "reports", "jammers"),
                          [(None, "level", "swapped"), (0.0, "level", "swapped"),
-                          (30.0, "level", "swapped"), (None, "db", "swapped"),
-                          (None, "level", "moving")],
-                         ids=["scenario-latency", "no-latency", "30-s-latency", "db-reports",
+                          (30.0, "db", "swapped"), (None, "level", "moving")],
+                         ids=["scenario-latency", "no-latency", "db-reports-30-s-latency",
                               "moving-jammers"])
 def test_the_cloud_on_the_lockstep_clock_flies_eval_s_maps_and_outcomes(supervisor, tmp_path,
                                                                        latency, reports,
