@@ -19,14 +19,25 @@
 
 #define REGRESSION_MAX_LAYERS 8
 
-/* A lane mask: a comparison of two blocks gives all ones where it holds, zeros elsewhere. */
-typedef int regression_mask __attribute__((vector_size(DENSE_BLOCK * sizeof(int)), aligned(4)));
+/* A lane mask: a comparison of two halves gives all ones where it holds, zeros elsewhere. */
+typedef int regression_mask __attribute__((vector_size(DENSE_HALF * sizeof(int)), aligned(4)));
 
 /* ``value`` where ``gate`` is positive, zero elsewhere. */
-static inline dense_lanes regression_where_positive(dense_lanes gate, dense_lanes value)
+static inline dense_half regression_where_positive(dense_half gate, dense_half value)
 {
-    const dense_lanes zero = {0};
-    return (dense_lanes)((regression_mask)value & (gate > zero));
+    const dense_half zero = {0};
+    return (dense_half)((regression_mask)value & (gate > zero));
+}
+
+/* The lanes of a block's two halves added in order, the first half's lane 0 first. */
+static inline float regression_lanes_sum(dense_half first, dense_half second)
+{
+    float total = 0.0f;
+    for (int lane = 0; lane < DENSE_HALF; lane++)
+        total += first[lane];
+    for (int lane = 0; lane < DENSE_HALF; lane++)
+        total += second[lane];
+    return total;
 }
 
 typedef struct {
@@ -68,13 +79,26 @@ static void regression_adam(float *restrict param, const float *restrict grad,
 DENSE_CLONES
 static float regression_dot(const float *restrict a, const float *restrict b, long padded)
 {
-    dense_lanes sum = {0};
-    for (long s = 0; s < padded; s += DENSE_BLOCK)
-        sum += *(const dense_lanes *)(a + s) * *(const dense_lanes *)(b + s);
-    float total = 0.0f;
-    for (int lane = 0; lane < DENSE_BLOCK; lane++)
-        total += sum[lane];
-    return total;
+    dense_half first = {0}, second = {0};
+    for (long s = 0; s < padded; s += DENSE_BLOCK) {
+        const dense_half *x = (const dense_half *)(a + s), *y = (const dense_half *)(b + s);
+        first += x[0] * y[0];
+        second += x[1] * y[1];
+    }
+    return regression_lanes_sum(first, second);
+}
+
+/* Sum over the padded batch of a[s], the lanes of each block added in a fixed order. */
+DENSE_CLONES
+static float regression_total(const float *restrict a, long padded)
+{
+    dense_half first = {0}, second = {0};
+    for (long s = 0; s < padded; s += DENSE_BLOCK) {
+        const dense_half *x = (const dense_half *)(a + s);
+        first += x[0];
+        second += x[1];
+    }
+    return regression_lanes_sum(first, second);
 }
 
 /* z = W a + b over the padded batch; ReLU unless it is the output layer. */
@@ -86,13 +110,21 @@ static void regression_forward_layer(const regression_layer *layer, const float 
         float *restrict z = out + o * padded;
         const float *w = layer->weight + (long)o * layer->inputs;
         for (long s = 0; s < padded; s += DENSE_BLOCK) {
-            dense_lanes sum = {0};
-            for (int i = 0; i < layer->inputs; i++)
-                sum += w[i] * *(const dense_lanes *)(in + i * padded + s);
-            sum += layer->bias[o];
-            if (relu)
-                sum = regression_where_positive(sum, sum);
-            *(dense_lanes *)(z + s) = sum;
+            dense_half first = {0}, second = {0};
+            for (int i = 0; i < layer->inputs; i++) {
+                const dense_half *x = (const dense_half *)(in + i * padded + s);
+                first += w[i] * x[0];
+                second += w[i] * x[1];
+            }
+            first += layer->bias[o];
+            second += layer->bias[o];
+            if (relu) {
+                first = regression_where_positive(first, first);
+                second = regression_where_positive(second, second);
+            }
+            dense_half *y = (dense_half *)(z + s);
+            y[0] = first;
+            y[1] = second;
         }
     }
 }
@@ -104,12 +136,17 @@ static void regression_back_layer(const regression_layer *layer, const float *re
 {
     for (int i = 0; i < layer->inputs; i++) {
         for (long s = 0; s < padded; s += DENSE_BLOCK) {
-            dense_lanes sum = {0};
-            for (int o = 0; o < layer->outputs; o++)
-                sum += layer->weight[(long)o * layer->inputs + i]
-                       * *(const dense_lanes *)(grad + o * padded + s);
-            const dense_lanes on = *(const dense_lanes *)(in + i * padded + s);
-            *(dense_lanes *)(in_grad + i * padded + s) = regression_where_positive(on, sum);
+            dense_half first = {0}, second = {0};
+            for (int o = 0; o < layer->outputs; o++) {
+                const float w = layer->weight[(long)o * layer->inputs + i];
+                const dense_half *g = (const dense_half *)(grad + o * padded + s);
+                first += w * g[0];
+                second += w * g[1];
+            }
+            const dense_half *on = (const dense_half *)(in + i * padded + s);
+            dense_half *y = (dense_half *)(in_grad + i * padded + s);
+            y[0] = regression_where_positive(on[0], first);
+            y[1] = regression_where_positive(on[1], second);
         }
     }
 }
@@ -207,13 +244,7 @@ static void regression_backward(const regression_layer *layers, int count, float
             for (int i = 0; i < layer->inputs; i++)
                 weight_grad[(long)o * layer->inputs + i] =
                     regression_dot(grad + o * padded, inputs[l] + i * padded, padded);
-            dense_lanes sum = {0};
-            for (long s = 0; s < padded; s += DENSE_BLOCK)
-                sum += *(const dense_lanes *)(grad + o * padded + s);
-            float total = 0.0f;
-            for (int lane = 0; lane < DENSE_BLOCK; lane++)
-                total += sum[lane];
-            bias_grad[o] = total;
+            bias_grad[o] = regression_total(grad + o * padded, padded);
         }
         regression_adam(layer->weight, weight_grad, layer->weight_mean, layer->weight_square,
                         (long)layer->outputs * layer->inputs, adam);
