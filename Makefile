@@ -25,10 +25,8 @@ $(STAMP): pyproject.toml setup.py planning/_lookahead.pyx planning/_routes.pyx \
 		planning/_regression.pyx planning/_evidence.pyx planning/_measuring.pyx planning/_dense.h \
 		planning/_regression.h shared/_radio.pyx shared/_vector_math.h \
 		| $(BIN)/python
-	@# --no-compile: pip would byte-compile every file of every wheel, torch's and sympy's
-	@# included (about a third of a fresh install's time); Python compiles what it imports, once.
-	$(PIP) install --no-compile $(TORCH)
-	$(PIP) install --no-compile -e '.[dev]'
+	$(PIP) install $(TORCH)
+	$(PIP) install -e '.[dev]'
 	@touch $(STAMP)
 
 # The main job: the distributed system (router, world, cloud, 4 agent processes) in real time,

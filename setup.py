@@ -34,8 +34,8 @@ def compiled(name: str, **options) -> Extension:
     )
 
 
-# The modules are translated and compiled on every core: the C compiler's ~55 s of one core
-# is most of an install's time.
+# The modules are translated and compiled on every core: the C compiler's work is most of an
+# install's time.
 CORES = os.cpu_count() or 1
 
 setup(ext_modules=cythonize([

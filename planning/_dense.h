@@ -21,8 +21,8 @@
 /* Half a block: DENSE_HALF states' values of one feature, one AVX register (GCC's generic
  * vectors, lowered to the registers each clone has; loads and stores need no alignment). A block
  * is computed as its two halves: gcc 12 lowers a whole block's 64-byte vector on AVX2 through the
- * stack at every product (12x slower), and two halves are two independent sums for the FMA
- * units. Each lane's arithmetic is the same either way. */
+ * stack at every product (BENCHMARKS.md, "Half blocks"), and two halves are two independent sums
+ * for the FMA units. Each lane's arithmetic is the same either way. */
 #define DENSE_HALF (DENSE_BLOCK / 2)
 typedef float dense_half __attribute__((vector_size(DENSE_HALF * sizeof(float)), aligned(4)));
 

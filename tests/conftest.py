@@ -99,8 +99,8 @@ def supervisor():
 # runs the in-process tests; every other module stays whole on one worker (its module-scoped
 # fixtures, such as the packaging test's wheel, are built once). The packaging test runs on the
 # other worker: it is mostly a wheel's build, and its one system, a lockstep episode of two
-# UAVs, waits up to 2 s a step for actions that take milliseconds. There it evens the workers
-# (the systems' were ~490 s of tests against the rest's ~360 s).
+# UAVs, waits up to 2 s a step for actions that take milliseconds. There it evens the workers'
+# loads, the systems' being the larger.
 SYSTEM_MODULES = frozenset({
     "test_bus_inprocess", "test_bus_supervisor", "test_chaos", "test_checkpoint",
     "test_console_browser", "test_examples", "test_faults", "test_fuzz", "test_recording",

@@ -69,7 +69,7 @@ with multiprocessing.get_context("fork").Pool(maxtasksperchild=1) as pool:
 def test_each_module_imports_alone_before_any_other_of_the_project():
     # Each module in a process that has loaded the libraries the project uses (torch, scipy,
     # matplotlib, ...) and none of the project's own: what an interpreter of its own per module
-    # checks, without loading torch 143 times (~66 s with the other test worker busy).
+    # checks, without loading torch again for every module.
     modules = _modules()
     census = subprocess.run([sys.executable, "-c", CENSUS, *modules], cwd=ROOT,
                             capture_output=True, text=True, timeout=300, check=True)
