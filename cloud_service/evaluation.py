@@ -45,7 +45,7 @@ from shared.measurements import MeasurementBatch, MeasurementSpec
 from shared.outcomes import Outcome
 from shared.paper import JammerSetting
 from shared.scenario import MAX_UAVS, Jammer, Scenario
-from shared.shipped import value_net_for
+from shared.shipped import value_net_for, value_net_name
 from shared.survey_maps import NoSurveyMapError, sinr_map_for
 from world_sim.core import VectorWorld
 from world_sim.jammers import JammerSchedule, JammerSet, described_jammers, swapping_jammers
@@ -193,12 +193,15 @@ def evaluate(
     headline rates count every episode; for ``proposed`` the transient (episodes flown on a
     map older than the jammer) is also reported apart, as is the rest. ``sinr_map``: the
     survey map ``proposed`` starts from (default: the shipped one of the scenario's world).
-    ``value_net``: default, the shipped one for the fleet's density. ``memory_dir`` keeps the
+    ``value_net``: default, the shipped one for the fleet's density and the scenario's
+    jammers (the report's ``model`` names the one flown). ``memory_dir`` keeps the
     cloud's measurement memory of a ``proposed`` run (a scratch directory otherwise)."""
     _check_request(scenario, method, episodes, seed, jammer, uavs, swap_every)
     schedule = swapping_jammers(scenario, jammer, swap_every, seed)
+    network = (None if method in ("orca", "straight") else
+               value_net_for(value_net, scenario, uavs or scenario.missions.uav_count))
     with tempfile.TemporaryDirectory(prefix="jamnav-eval-") as scratch:
-        controller, online = _controller(scenario, method, uavs, value_net, sinr_map,
+        controller, online = _controller(scenario, method, network, sinr_map,
                                          memory_dir or Path(scratch))
         results, start_version = _fly(scenario, controller, online, episodes, seed, schedule,
                                       uavs, on_episode)
@@ -210,6 +213,7 @@ def evaluate(
         "jammers": described_jammers(schedule(0)),
         "swap_every": swap_every,
         "scenario": scenario.name,
+        "model": None if network is None else value_net_name(network),
         **outcome_rates(results.outcomes),
     }
     if online is not None:
@@ -244,15 +248,15 @@ def _check_request(scenario: Scenario, method: str, episodes: int, seed: int,
                               "scenario's jammers or None")
 
 
-def _controller(scenario: Scenario, method: str, uavs: int | None, value_net: Path | None,
-                sinr_map: Path | None, memory_dir: Path) -> tuple[Controller, OnlineMaps | None]:
-    """What flies ``method``, and for ``proposed`` the online maps it flies on."""
+def _controller(scenario: Scenario, method: str, network: Path | None, sinr_map: Path | None,
+                memory_dir: Path) -> tuple[Controller, OnlineMaps | None]:
+    """What flies ``method`` (the lookahead's methods with the value network ``network``), and
+    for ``proposed`` the online maps it flies on."""
     if method == "orca":
         return OrcaController(scenario), None
     if method == "straight":
         return StraightController(), None
-    policy = load_policy(scenario, value_net_for(
-        value_net, scenario.area.square_metres, uavs or scenario.missions.uav_count))
+    policy = load_policy(scenario, network)
     if method != "proposed":
         maps = perfect_maps(scenario) if method == "perfect" else outdated_maps(scenario)
         return LookaheadController(policy, maps), None

@@ -28,7 +28,7 @@ def fly(job: tuple[str, str, int, int]) -> dict[str, Any]:
     scenario = load_scenario(name)
     report = evaluate(scenario, method, episodes, seed, scenario.flown_jammers)
     return {"scenario": scenario.name, "method": method, "seed": seed, "episodes": episodes,
-            "cloud_latency_s": scenario.online_map.cloud_latency_s,
+            "cloud_latency_s": scenario.online_map.cloud_latency_s, "model": report["model"],
             **{key: report[key] for key in RATE_KEYS}}
 
 
@@ -67,8 +67,8 @@ def write_jammer_table(runs: list[dict[str, Any]], out_dir: Path, command: str
              "transients included), at each scenario's cloud latency; the seeds' range of "
              "success in brackets.",
              "",
-             "| scenario | map | S / D / C | success, seeds' range |",
-             "|---|---|---|---|"]
+             "| scenario | map | value network | S / D / C | success, seeds' range |",
+             "|---|---|---|---|---|"]
     for name in dict.fromkeys(run["scenario"] for run in runs):
         for method in METHODS:
             chosen = [run for run in runs if run["scenario"] == name and run["method"] == method]
@@ -77,7 +77,8 @@ def write_jammer_table(runs: list[dict[str, Any]], out_dir: Path, command: str
             means = " / ".join(f"{100 * np.mean([run[key] for run in chosen]):.1f}"
                                for key in SHOWN_RATES)
             success = [100 * run["success_rate"] for run in chosen]
-            lines.append(f"| {name} | {method} | {means} | "
+            models = ", ".join(sorted({run["model"] for run in chosen}))
+            lines.append(f"| {name} | {method} | {models} | {means} | "
                          f"[{min(success):.1f}, {max(success):.1f}] |")
     md_path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return md_path, json_path

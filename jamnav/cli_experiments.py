@@ -41,8 +41,7 @@ MAX_ONLINE_PERIOD_S = 3600.0
 
 
 def _value_net(name_or_path: str | None, scenario: Scenario, uavs: int | None = None) -> Path:
-    return value_net_for(name_or_path, scenario.area.square_metres,
-                         uavs or scenario.missions.uav_count)
+    return value_net_for(name_or_path, scenario, uavs or scenario.missions.uav_count)
 
 
 def _add_online_map_options(parser: argparse.ArgumentParser) -> None:

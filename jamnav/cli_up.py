@@ -18,6 +18,7 @@ from jamnav.arguments import (
     new_recording,
     output_path,
     scenario_argument,
+    scenario_with_jammer,
     survey_map_argument,
 )
 from jamnav.cli_runtime import guarded
@@ -177,7 +178,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         swap_at=args.swap_jammer_at, swap_to=swap_to, swap_every=args.swap_every,
         cloud_latency=args.cloud_latency, retrain_samples=args.retrain_samples,
         figures=not args.no_figures,
-        model=value_net_for(args.model, scenario.area.square_metres, uavs), sinr_map=survey,
+        model=value_net_for(args.model, scenario_with_jammer(args), uavs), sinr_map=survey,
         secure=args.secure or args.credentials is not None,
         credentials=Path(args.credentials) if args.credentials else None,
         routers=args.routers, agent_endpoint=agent_endpoint, link_endpoint=link_endpoint,

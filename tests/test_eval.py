@@ -196,7 +196,9 @@ def test_the_jammers_table_flies_each_scenarios_own_jammers_as_eval_does(capsys,
         assert again["jammers"] == [jammer.model_dump(mode="json", exclude={
             "enabled", "efficiency_db"}, exclude_none=True) for jammer in scenario.jammers]
     table = (tmp_path / "jammers_table.md").read_text()
-    assert "| convoy | outdated |" in table and out == table + "\n"
+    # Both scenarios fly the network trained with several and driving jammers, by default.
+    assert {run["model"] for run in runs} == {"extended-many"}
+    assert "| convoy | outdated | extended-many |" in table and out == table + "\n"
     assert "`jamnav jammers-table two-jammers convoy --seeds 1 --episodes 2`" in table
 
 

@@ -7,9 +7,11 @@ import inspect
 
 from cloud_service.evaluation import evaluate, load_policy
 from jamnav.run_report import map_delays, summary_table, swap_rates
+from shared.scenario import load_scenario
 from shared.shipped import (
     DEFAULT_VALUE_NET,
     EXTENDED_CROWD_VALUE_NET,
+    EXTENDED_MANY_VALUE_NET,
     EXTENDED_VALUE_NET,
     VALUE_NET,
     best_value_net,
@@ -86,15 +88,21 @@ def test_the_value_network_is_named_by_its_shipped_name_or_its_path(tmp_path):
     assert value_net_name(value_net_path("paper-tt6")) == "paper-tt6"
 
 
-def test_the_default_network_is_the_one_for_the_fleets_density():
-    hectare, city = 10_000.0, 160_000.0
-    assert best_value_net(hectare, 4) == best_value_net(hectare, 7) == EXTENDED_VALUE_NET
-    assert best_value_net(hectare, 8) == best_value_net(hectare, 16) == EXTENDED_CROWD_VALUE_NET
+def test_the_default_network_is_the_one_for_the_fleets_density_and_the_worlds_jammers():
+    icc2021, city = load_scenario("icc2021"), load_scenario("city")  # 1 ha and 16 ha
+    assert best_value_net(icc2021, 4) == best_value_net(icc2021, 7) == EXTENDED_VALUE_NET
+    assert best_value_net(icc2021, 8) == best_value_net(icc2021, 16) == EXTENDED_CROWD_VALUE_NET
     assert best_value_net(city, 64) == EXTENDED_VALUE_NET  # the paper's density on 16 ha
     assert best_value_net(city, 128) == EXTENDED_CROWD_VALUE_NET
-    assert value_net_for(None, hectare, 16) == EXTENDED_CROWD_VALUE_NET
-    assert value_net_for("paper", hectare, 16) == VALUE_NET  # asked for, whatever the fleet
+    assert value_net_for(None, icc2021, 16) == EXTENDED_CROWD_VALUE_NET
+    assert value_net_for("paper", icc2021, 16) == VALUE_NET  # asked for, whatever the fleet
     assert value_net_name(EXTENDED_CROWD_VALUE_NET) == "extended-crowd"
+    # Two still jammers, or one that drives: the network trained with both.
+    for several_or_driving in ("two-jammers", "two-jammers-shadowed", "convoy"):
+        assert best_value_net(load_scenario(several_or_driving), 4) == EXTENDED_MANY_VALUE_NET
+    assert best_value_net(load_scenario("convoy"), 16) == EXTENDED_CROWD_VALUE_NET  # dense first
+    assert best_value_net(load_scenario("two-jammers").without_jammer(), 4) == EXTENDED_VALUE_NET
+    assert value_net_name(EXTENDED_MANY_VALUE_NET) == "extended-many"
 
 
 def test_the_library_flies_the_best_network_by_default_too(scenario, monkeypatch):
