@@ -133,8 +133,7 @@ def _idealized_spreads(scenario: Scenario) -> list[float]:
 def _success(scenario: Scenario, setting: JammerSetting,
              levels_at: Callable[[np.ndarray], np.ndarray] | None) -> float:
     """Success (%) of the shipped planner flying the map ``levels_at`` (None: the true map)."""
-    policy = load_policy(scenario, value_net_for(None, scenario,
-                                                 scenario.missions.uav_count))
+    policy = load_policy(scenario, value_net_for(None, scenario, scenario.missions.uav_count))
     if levels_at is None:
         maps = perfect_maps(scenario)
     else:

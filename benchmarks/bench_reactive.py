@@ -35,8 +35,7 @@ def run() -> list[Figure]:
 
 def _fly(scenario: Scenario, maps) -> tuple[float, float]:
     """Success, and the UAV-seconds per episode the jammer transmitted with UAVs in flight."""
-    policy = load_policy(scenario, value_net_for(None, scenario,
-                                                 scenario.missions.uav_count))
+    policy = load_policy(scenario, value_net_for(None, scenario, scenario.missions.uav_count))
     jammed = [0.0]
 
     def count(world: VectorWorld) -> None:  # after each step: the jammer on in it, who flies on

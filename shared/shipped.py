@@ -51,7 +51,8 @@ CROWD_UAVS_PER_HECTARE = 8.0
 def best_value_net(scenario: Scenario, uavs: int) -> Path:
     """The shipped value network that flies ``uavs`` UAVs in ``scenario``'s world best: the
     crowd's where they are dense, else the one trained on several and driving jammers where
-    the scenario has either (BENCHMARKS.md, "Training on several jammers, some driving")."""
+    the scenario has either (BENCHMARKS.md, "A network trained on several and driving
+    jammers, shipped")."""
     if uavs / (scenario.area.square_metres / 10_000.0) >= CROWD_UAVS_PER_HECTARE:
         return VALUE_NETS["extended-crowd"]
     jammers = [jammer for jammer in scenario.jammers if jammer.enabled]
