@@ -69,7 +69,7 @@ from shared.measurements import MeasurementBatch, MeasurementSpec
 from shared.process_status import ProcessStatus
 from shared.radio import radio_core
 from shared.scenario import Scenario, load_scenario
-from shared.shipped import DEFAULT_VALUE_NET, EXTENDED_VALUE_NET, VALUE_NET_HELP, value_net_path
+from shared.shipped import EXTENDED_VALUE_NET, VALUE_NET_HELP, value_net_for
 from shared.survey_maps import foreign_survey_map, sinr_map_for
 from shared.topics import ArgumentParser, Topics, add_bus_arguments, endpoint_from
 from shared.wire import MessageError, encode
@@ -470,9 +470,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--map", choices=("online", "perfect", "outdated"), default="online")
     parser.add_argument("--run-dir", default="runs/cloud", metavar="DIR",
                         help="replay memory and published SINR maps")
-    parser.add_argument("--value-net", default=DEFAULT_VALUE_NET, metavar="NAME|PATH",
-                        help=f"{VALUE_NET_HELP}; the cloud does not know the fleet: "
-                             f"{DEFAULT_VALUE_NET} unless told (`jamnav up` tells it)")
+    parser.add_argument("--value-net", default=None, metavar="NAME|PATH",
+                        help=f"{VALUE_NET_HELP}; the cloud does not know the fleet: unless "
+                             "told (`jamnav up` tells it), the one for the scenario's own "
+                             "fleet and jammers")
     parser.add_argument("--sinr-map", "--sinr-net", dest="sinr_net", default=None, metavar="PATH",
                         help="the survey's no-jammer SINR map (online; default: the shipped "
                              "one of the scenario's radio world)")
@@ -544,7 +545,8 @@ def cloud_setup(args: argparse.Namespace) -> bus.ServiceSetup:
     def run(session: zenoh.Session, stop: threading.Event, log: logging.Logger) -> int:
         try:
             cloud = CloudService(session, topics, scenario, args.map, Path(args.run_dir), log,
-                                 value_net=value_net_path(args.value_net),
+                                 value_net=value_net_for(args.value_net, scenario,
+                                                         scenario.missions.uav_count),
                                  sinr_net=sinr_net,
                                  jammers=jammers, retrain=retrain,
                                  lockstep=args.clock == "lockstep")
