@@ -193,13 +193,14 @@ def evaluate(
     headline rates count every episode; for ``proposed`` the transient (episodes flown on a
     map older than the jammer) is also reported apart, as is the rest. ``sinr_map``: the
     survey map ``proposed`` starts from (default: the shipped one of the scenario's world).
-    ``value_net``: default, the shipped one for the fleet's density and the scenario's
-    jammers (the report's ``model`` names the one flown). ``memory_dir`` keeps the
+    ``value_net``: default, the shipped one for the fleet's density and the jammers the run
+    starts with (the report's ``model`` names the one flown). ``memory_dir`` keeps the
     cloud's measurement memory of a ``proposed`` run (a scratch directory otherwise)."""
     _check_request(scenario, method, episodes, seed, jammer, uavs, swap_every)
     schedule = swapping_jammers(scenario, jammer, swap_every, seed)
     network = (None if method in ("orca", "straight") else
-               value_net_for(value_net, scenario, uavs or scenario.missions.uav_count))
+               value_net_for(value_net, scenario, uavs or scenario.missions.uav_count,
+                             schedule(0)))
     with tempfile.TemporaryDirectory(prefix="jamnav-eval-") as scratch:
         controller, online = _controller(scenario, method, network, sinr_map,
                                          memory_dir or Path(scratch))

@@ -540,13 +540,15 @@ def cloud_setup(args: argparse.Namespace) -> bus.ServiceSetup:
     sinr_net = None  # resolved here, so that a world without one is refused before connecting
     if args.map == "online":
         sinr_net = Path(args.sinr_net) if args.sinr_net else sinr_map_for(scenario)
+    # Chosen for the jammers the run starts with, as jamnav eval chooses.
+    value_net = value_net_for(args.value_net, scenario, scenario.missions.uav_count,
+                              [jammer.as_jammer(scenario) for jammer in jammers])
     topics = Topics(args.prefix)
 
     def run(session: zenoh.Session, stop: threading.Event, log: logging.Logger) -> int:
         try:
             cloud = CloudService(session, topics, scenario, args.map, Path(args.run_dir), log,
-                                 value_net=value_net_for(args.value_net, scenario,
-                                                         scenario.missions.uav_count),
+                                 value_net=value_net,
                                  sinr_net=sinr_net,
                                  jammers=jammers, retrain=retrain,
                                  lockstep=args.clock == "lockstep")

@@ -3,11 +3,12 @@ trained by the project's commands)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from shared.scenario import Scenario
+    from shared.scenario import Jammer, Scenario
 
 
 def shipped_dir(name: str) -> Path:
@@ -48,15 +49,17 @@ VALUE_NET_HELP = ("value network: a shipped one by name (extended, the best for 
 CROWD_UAVS_PER_HECTARE = 8.0
 
 
-def best_value_net(scenario: Scenario, uavs: int) -> Path:
+def best_value_net(scenario: Scenario, uavs: int,
+                   jammers: Sequence[Jammer] | None = None) -> Path:
     """The shipped value network that flies ``uavs`` UAVs in ``scenario``'s world best: the
     crowd's where they are dense, else the one trained on several and driving jammers where
-    the scenario has either (BENCHMARKS.md, "A network trained on several and driving
-    jammers, shipped")."""
+    the jammers flown (default: the scenario's) are several or one drives (BENCHMARKS.md, "A
+    network trained on several and driving jammers, shipped")."""
     if uavs / (scenario.area.square_metres / 10_000.0) >= CROWD_UAVS_PER_HECTARE:
         return VALUE_NETS["extended-crowd"]
-    jammers = [jammer for jammer in scenario.jammers if jammer.enabled]
-    varied = len(jammers) > 1 or any(jammer.path is not None for jammer in jammers)
+    flown = [jammer for jammer in (scenario.flown_jammers if jammers is None else jammers)
+             if jammer.enabled and jammer.power_w > 0]
+    varied = len(flown) > 1 or any(jammer.path is not None for jammer in flown)
     return VALUE_NETS["extended-many" if varied else DEFAULT_VALUE_NET]
 
 
@@ -65,10 +68,13 @@ def value_net_path(name_or_path: str | Path) -> Path:
     return VALUE_NETS.get(str(name_or_path), Path(name_or_path))
 
 
-def value_net_for(name_or_path: str | Path | None, scenario: Scenario, uavs: int) -> Path:
+def value_net_for(name_or_path: str | Path | None, scenario: Scenario, uavs: int,
+                  jammers: Sequence[Jammer] | None = None) -> Path:
     """The value network asked for (a shipped name or a path), or else the best shipped one
-    for ``uavs`` UAVs in ``scenario``'s world."""
-    return value_net_path(name_or_path) if name_or_path else best_value_net(scenario, uavs)
+    for ``uavs`` UAVs in ``scenario``'s world under ``jammers`` (default: the scenario's)."""
+    if name_or_path:
+        return value_net_path(name_or_path)
+    return best_value_net(scenario, uavs, jammers)
 
 
 def value_net_name(path: Path | None) -> str:

@@ -4,6 +4,11 @@ missing, success before and after a jammer swap, and the value network named."""
 from __future__ import annotations
 
 import inspect
+import json
+import logging
+import threading
+
+import pytest
 
 from cloud_service.evaluation import evaluate, load_policy
 from jamnav.run_report import map_delays, summary_table, swap_rates
@@ -102,6 +107,11 @@ def test_the_default_network_is_the_one_for_the_fleets_density_and_the_worlds_ja
         assert best_value_net(load_scenario(several_or_driving), 4) == EXTENDED_MANY_VALUE_NET
     assert best_value_net(load_scenario("convoy"), 16) == EXTENDED_CROWD_VALUE_NET  # dense first
     assert best_value_net(load_scenario("two-jammers").without_jammer(), 4) == EXTENDED_VALUE_NET
+    # The jammers flown, when they are given: a jammer of no power flies as none.
+    first, second = load_scenario("two-jammers").jammers
+    assert best_value_net(icc2021, 4, (first, second)) == EXTENDED_MANY_VALUE_NET
+    silent = second.model_copy(update={"power_w": 0.0})
+    assert best_value_net(icc2021, 4, (first, silent)) == EXTENDED_VALUE_NET
     assert value_net_name(EXTENDED_MANY_VALUE_NET) == "extended-many"
 
 
@@ -117,6 +127,39 @@ def test_the_library_flies_the_best_network_by_default_too(scenario, monkeypatch
         evaluate(scenario, "perfect", 1, 0, None, uavs)
     assert flown == [EXTENDED_VALUE_NET, EXTENDED_CROWD_VALUE_NET]
     assert DEFAULT_VALUE_NET == "extended"
+    # The jammers flown choose, not those the scenario lists: icc2021 given two jammers flies
+    # the network trained with several, two-jammers given none the one-jammer network.
+    two = load_scenario("two-jammers")
+    assert evaluate(scenario, "perfect", 1, 0, two.flown_jammers)["model"] == "extended-many"
+    assert evaluate(two, "perfect", 1, 0, None)["model"] == "extended"
+    assert flown[2:] == [EXTENDED_MANY_VALUE_NET, EXTENDED_VALUE_NET]
+
+
+@pytest.mark.parametrize(("argv", "served"), [
+    ([], EXTENDED_VALUE_NET),
+    (["--scenario", "convoy"], EXTENDED_MANY_VALUE_NET),
+    (["--scenario", "two-jammers", "--no-jammer"], EXTENDED_VALUE_NET),
+    (["--jammers", json.dumps([{"id": 0, "x": 0.0, "y": 0.0, "power_w": 1.0, "height_m": 30.0},
+                               {"id": 1, "x": 20.0, "y": 5.0, "power_w": 0.5, "height_m": 30.0}])],
+     EXTENDED_MANY_VALUE_NET),
+    (["--scenario", "convoy", "--value-net", "paper"], VALUE_NET),
+])
+def test_a_cloud_started_alone_serves_the_network_for_the_jammers_it_starts_with(
+        capsys, argv, served, monkeypatch):
+    """``python -m cloud_service.process`` without --value-net serves what `jamnav eval` would
+    fly under the same jammers."""
+    import cloud_service.process as cloud_process
+
+    given = []
+
+    def recorded(*args, value_net, **kwargs):
+        given.append(value_net)
+        raise ValueError("recorded")
+
+    monkeypatch.setattr(cloud_process, "CloudService", recorded)
+    setup = cloud_process.cloud_setup(cloud_process.build_parser().parse_args(argv))
+    assert setup.run(None, threading.Event(), logging.getLogger("test")) == 2
+    assert given == [served] and "recorded" in capsys.readouterr().err
 
 
 def test_the_clouds_latency_is_told_in_wall_seconds_and_in_flight():
