@@ -233,6 +233,11 @@ class Jammer(_Strict):
         """Where it stands and whether it transmits never change within an episode."""
         return self.path is None and self.schedule is None
 
+    @property
+    def flies(self) -> bool:
+        """Whether a world with it has it: on, and with some power."""
+        return self.enabled and self.power_w > 0
+
 
 class Rewards(_Strict):
     disconnected: Finite
@@ -378,7 +383,7 @@ class Scenario(_Strict):
     @property
     def flown_jammers(self) -> tuple[Jammer, ...]:
         """The jammers the scenario flies: those it lists that are on and have power."""
-        return tuple(jammer for jammer in self.jammers if jammer.enabled and jammer.power_w > 0)
+        return tuple(jammer for jammer in self.jammers if jammer.flies)
 
     @property
     def jammer(self) -> Jammer:

@@ -58,7 +58,7 @@ def best_value_net(scenario: Scenario, uavs: int,
     if uavs / (scenario.area.square_metres / 10_000.0) >= CROWD_UAVS_PER_HECTARE:
         return VALUE_NETS["extended-crowd"]
     flown = [jammer for jammer in (scenario.jammers if jammers is None else jammers)
-             if jammer.enabled and jammer.power_w > 0]
+             if jammer.flies]
     varied = len(flown) > 1 or any(jammer.path is not None for jammer in flown)
     return VALUE_NETS["extended-many" if varied else DEFAULT_VALUE_NET]
 
