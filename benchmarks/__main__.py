@@ -15,9 +15,9 @@ from shared.threads import one_blas_thread
 BENCHMARKS = ["bench_radio", "bench_world", "bench_policy", "bench_training_step", "bench_sinr",
               "bench_cloud_work", "bench_adaptation", "bench_blip", "bench_correction",
               "bench_map_ceiling", "bench_jammer_count", "bench_reactive", "bench_tracking",
-              "bench_jammer_placing", "bench_bus", "bench_agreement", "bench_planner_agreement",
-              "bench_planner_outcomes", "bench_fleet", "bench_outbox", "bench_recording",
-              "bench_console", "bench_scale", "bench_planning"]
+              "bench_late_map", "bench_jammer_placing", "bench_bus", "bench_agreement",
+              "bench_planner_agreement", "bench_planner_outcomes", "bench_fleet", "bench_outbox",
+              "bench_recording", "bench_console", "bench_scale", "bench_planning"]
 
 
 def main() -> int:

@@ -36,14 +36,16 @@ class RasterMaps:
     flight at once, so keeping twice the environments flown never samples a raster twice."""
 
     def __init__(self, scenario: Scenario, jam: bool = True, kept: int = 128,
-                 moving_every_steps: int = 1):
+                 moving_every_steps: int = 1, late_steps: int = 0):
         """``moving_every_steps``: a moving jammer is shown where it was at the last multiple
-        of this many steps into the episode (1: where it is)."""
+        of this many steps into the episode (1: where it is); ``late_steps``: where it was
+        this many steps ago, at the episode's start at the earliest (0: where it is)."""
         self.scenario = scenario
         self.radio = RadioModel(scenario)
         self.jam = jam
         self.kept = kept
         self.moving_every_steps = moving_every_steps
+        self.late_steps = late_steps
         self.cache: OrderedDict[tuple[float, ...], LevelRaster] = OrderedDict()
 
     def raster(self, jammers: Jammers) -> LevelRaster:
@@ -65,7 +67,7 @@ class RasterMaps:
             return RasterMap(self.scenario, [self.raster(None)], np.zeros(rows.size, np.int64))
         self.kept = max(self.kept, 2 * world.num_envs)  # never evict a setting in flight
         env = rows // world.num_uavs
-        jammers = {e: world.jammers_as_of(e, self.moving_every_steps)
+        jammers = {e: world.jammers_as_of(e, self.moving_every_steps, self.late_steps)
                    for e in np.unique(env).tolist()}
         keys = sorted(set(jammers.values()))
         position = {key: index for index, key in enumerate(keys)}

@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cloud_service.rollout import RasterMaps
 from shared.jammer_motion import params_at, position_at, transmits_at
 from shared.radio import JammerParams, RadioModel
 from shared.scenario import Jammer, ScenarioError, load_scenario
@@ -106,6 +107,29 @@ def test_the_world_moves_and_switches_its_jammers_at_the_right_steps(scenario):
     np.testing.assert_allclose(world.sinr_db[1], truth.sinr_db, rtol=0, atol=1e-9)
     world.reset([1], [7])  # a new episode starts each drive afresh
     assert world.jammer_x[1, 0] == -40.0 and world.jammer_power[1, 1] == 0.5
+
+
+def test_a_late_map_shows_a_driving_jammer_where_it_was_by_hand(scenario):
+    convoy = a_scenario_jammer(scenario, x=-40.0, y=0.0, path={"waypoints": [[40.0, 0.0]],
+                                                                 "speed_mps": 3.0})
+    world = VectorWorld(scenario, 1, 2)
+    world.set_jammers([0], (convoy,))
+    world.reset([0], [5])
+    late = RasterMaps(scenario, late_steps=2)
+    hover = np.zeros((1, 2))
+    for step in range(6):
+        # 2 s late at 3 m/s: 6 m behind, and at the drive's start for the episode's first 2 s.
+        seen_x = -40.0 + 3.0 * max(0, step - 2)
+        assert world.jammers_as_of(0, late_steps=2)[0][:2] == pytest.approx((seen_x, 0.0))
+        assert world.jammers_now(0)[0][0] == pytest.approx(-40.0 + 3.0 * step)
+        late(world, np.arange(2))
+        world.step(hover, world.heading)
+    # One raster per place shown: at the start for steps 0-2, then one a step.
+    assert len(late.cache) == 4
+    still = VectorWorld(scenario, 1, 2)
+    still.reset([0], [5])
+    still.step(hover, still.heading)
+    assert still.jammers_as_of(0, late_steps=2) == still.jammers_now(0)
 
 
 def test_a_scenario_file_lists_jammers_or_names_the_one(tmp_path):

@@ -276,13 +276,16 @@ class VectorWorld:
                                   self.jammer_height[env_ids, slot, None])
                      for slot in range(self.jammer_x.shape[1]))
 
-    def jammers_as_of(self, env: int, every_steps: int) -> tuple[tuple[float, ...], ...]:
-        """As ``jammers_now``, each moving jammer where it was at the last multiple of
-        ``every_steps`` steps into the episode (whether it transmits: as now)."""
+    def jammers_as_of(self, env: int, every_steps: int = 1,
+                      late_steps: int = 0) -> tuple[tuple[float, ...], ...]:
+        """As ``jammers_now``, each moving jammer where it was ``late_steps`` steps ago (at
+        the episode's start at the earliest), held at the last multiple of ``every_steps``
+        steps into the episode (whether it transmits: as now)."""
         jammers = self._driven.get(env)
-        if jammers is None or every_steps == 1:
+        if jammers is None or (every_steps == 1 and late_steps == 0):
             return self.jammers_now(env)
-        t = float(self.steps[env] - self.steps[env] % every_steps) * self.dt
+        steps = max(0, int(self.steps[env]) - late_steps)
+        t = float(steps - steps % every_steps) * self.dt
         return tuple((*position_at(jammer, t), float(power), float(height))
                      for jammer, power, height in zip(jammers, self.jammer_power[env],
                                                       self.jammer_height[env], strict=False)
