@@ -248,15 +248,14 @@ def _counted(scenario: Scenario, reports: Reports, reading: _Reading, report_sig
 
     if searched.llr.max() < PRESENCE_LLR or most == 1:
         return alone()
-    penalty = 0.5 * JAMMER_PARAMETERS * math.log(max(searched.evidence.effective_count, 2.0))
+    penalty = _penalty(searched.evidence)
     placed = [_best_placed(searched)]
     while len(placed) < most:
         # One more must be of the powers the scenario expects: a weaker one found beside a
         # jammer is the misfit of the cloud's model (the survey map's errors) read as a source
         # (BENCHMARKS.md, "Several jammers, and jammers that move", correcting with the sum).
-        more = _coarse_search(scenario, reports, reading, report_sigma_db, placed)
-        more = more._replace(llr=np.where(_expected(scenario, more.search.powers_dbw),
-                                          more.llr, -np.inf))
+        more = _of_expected_powers(
+            scenario, _coarse_search(scenario, reports, reading, report_sigma_db, placed))
         if more.llr.max() <= penalty:
             break
         placed = _placed_again(scenario, reports, reading, report_sigma_db,
@@ -276,6 +275,34 @@ def _counted(scenario: Scenario, reports: Reports, reading: _Reading, report_sig
         # ... and so must each one stay once estimated: else one jammer less.
         return _counted(scenario, reports, reading, report_sigma_db, searched, len(placed) - 1)
     return estimated_set(estimates)
+
+
+def one_more_evidence(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
+                      known: Sequence[Placed], *, reported_db: np.ndarray | None = None,
+                      no_jammer_levels: np.ndarray | None = None,
+                      report_sigma_db: float = REPORT_SIGMA_DB) -> tuple[float, float] | None:
+    """How much one jammer more than ``known`` (each its position and effective power, dBW)
+    explains the uploads, as ``estimate_jammers`` weighs it: the best weighted LLR of the
+    coarse search over the powers the scenario expects, and BIC's penalty it must beat to be
+    counted beside others. None with too few located reports."""
+    searched = _coarse_search(scenario, Reports.of(scenario, xy, levels, reported_db),
+                              _Reading(no_jammer_levels, None), report_sigma_db, known)
+    if searched is None:
+        return None
+    return (float(_of_expected_powers(scenario, searched).llr.max()),
+            _penalty(searched.evidence))
+
+
+def _penalty(evidence: JammerEvidence) -> float:
+    """BIC's penalty for one jammer more: ``JAMMER_PARAMETERS`` / 2 ln n, n the reports that
+    count as independent."""
+    return 0.5 * JAMMER_PARAMETERS * math.log(max(evidence.effective_count, 2.0))
+
+
+def _of_expected_powers(scenario: Scenario, searched: _Searched) -> _Searched:
+    """``searched`` with the hypotheses of powers the scenario does not expect ruled out."""
+    return searched._replace(llr=np.where(_expected(scenario, searched.search.powers_dbw),
+                                          searched.llr, -np.inf))
 
 
 def _best_placed(searched: _Searched) -> Placed:
@@ -384,11 +411,10 @@ def fit_frames(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, frames_xy
 def _hypotheses(scenario: Scenario, searched: _Searched, mass: float, most: int,
                 presence_llr: float) -> JammerHypotheses | None:
     """``jammer_hypotheses`` on a coarse search."""
-    evidence, search, llr = searched
     # Early on, a far stronger jammer farther off explains the few contradicting reports as
     # well as the right one, and it would darken the whole map: a provisional map weighs only
     # the powers the scenario expects (its training range).
-    llr = np.where(_expected(scenario, search.powers_dbw), llr, -np.inf)
+    evidence, search, llr = _of_expected_powers(scenario, searched)
     if llr.max() < presence_llr:
         return None
     weight = np.exp(llr - llr.max()).ravel()

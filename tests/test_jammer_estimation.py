@@ -17,6 +17,7 @@ from cloud_service.jammer_estimation import (
     estimate_jammers,
     jammer_hypotheses,
     locate_jammer,
+    one_more_evidence,
 )
 from cloud_service.map_correction import (
     corrected_levels,
@@ -211,6 +212,30 @@ def test_the_jammers_are_counted_and_each_placed_on_crafted_reports(scenario, ja
         nearest = min(found, key=lambda estimate: position_error(estimate, jammer))
         assert position_error(nearest, jammer) <= (8.0 if len(placed) == 3 else 3.0)
         assert abs(power_error_db(nearest, jammer)) <= 1.5
+
+
+def test_the_evidence_for_one_jammer_more_falls_once_the_jammers_are_known(scenario):
+    """Two jammers on exact reports over the area: each, the other known, explains them by
+    far more than BIC's penalty; a third, both known, by less (it finds nothing left to
+    explain: the survey's exact levels leave the reports no misfit)."""
+    truth = RadioModel(scenario)
+    xy = uniform_points(scenario, np.random.default_rng(0), 2000)
+    jammers = [JammerParams(-25.0, 15.0, 1.0, scenario.jammer.height_m),
+               JammerParams(25.0, -10.0, 1.0, scenario.jammer.height_m)]
+    levels, no_jammer = truth.evaluate(xy, jammers).level, truth.evaluate(xy).level
+    placed = [(np.array([jammer.x, jammer.y]), scenario.jammer.efficiency_db)  # 1 W: 0 dBW
+              for jammer in jammers]
+
+    def one_more(known):
+        return one_more_evidence(scenario, xy, levels, known, no_jammer_levels=no_jammer)
+
+    for index in range(2):
+        llr, penalty = one_more(placed[:index] + placed[index + 1:])
+        assert llr > 2 * penalty
+    llr, penalty = one_more(placed)
+    assert llr < penalty
+    assert one_more_evidence(scenario, xy[:10], levels[:10], [],
+                             no_jammer_levels=no_jammer[:10]) is None
 
 
 def test_one_jammer_counted_is_the_one_estimate_jammer_gives(scenario):
