@@ -39,7 +39,8 @@ class RasterMaps:
                  moving_every_steps: int = 1, late_steps: int = 0):
         """``moving_every_steps``: a moving jammer is shown where it was at the last multiple
         of this many steps into the episode (1: where it is); ``late_steps``: where it was
-        this many steps ago, at the episode's start at the earliest (0: where it is)."""
+        this many steps ago, at the episode's start at the earliest (0: where it is; negative:
+        where it will be)."""
         self.scenario = scenario
         self.radio = RadioModel(scenario)
         self.jam = jam

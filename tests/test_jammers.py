@@ -121,6 +121,8 @@ def test_a_late_map_shows_a_driving_jammer_where_it_was_by_hand(scenario):
         # 2 s late at 3 m/s: 6 m behind, and at the drive's start for the episode's first 2 s.
         seen_x = -40.0 + 3.0 * max(0, step - 2)
         assert world.jammers_as_of(0, late_steps=2)[0][:2] == pytest.approx((seen_x, 0.0))
+        assert world.jammers_as_of(0, late_steps=-1)[0][0] == pytest.approx(
+            -40.0 + 3.0 * (step + 1))  # a step ahead
         assert world.jammers_now(0)[0][0] == pytest.approx(-40.0 + 3.0 * step)
         late(world, np.arange(2))
         world.step(hover, world.heading)

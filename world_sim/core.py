@@ -279,8 +279,8 @@ class VectorWorld:
     def jammers_as_of(self, env: int, every_steps: int = 1,
                       late_steps: int = 0) -> tuple[tuple[float, ...], ...]:
         """As ``jammers_now``, each moving jammer where it was ``late_steps`` steps ago (at
-        the episode's start at the earliest), held at the last multiple of ``every_steps``
-        steps into the episode (whether it transmits: as now)."""
+        the episode's start at the earliest; negative: where it will be), held at the last
+        multiple of ``every_steps`` steps into the episode (whether it transmits: as now)."""
         jammers = self._driven.get(env)
         if jammers is None or (every_steps == 1 and late_steps == 0):
             return self.jammers_now(env)
