@@ -280,13 +280,14 @@ def _counted(scenario: Scenario, reports: Reports, reading: _Reading, report_sig
 def one_more_evidence(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
                       known: Sequence[Placed], *, reported_db: np.ndarray | None = None,
                       no_jammer_levels: np.ndarray | None = None,
+                      no_jammer_db: SinrBelief | None = None,
                       report_sigma_db: float = REPORT_SIGMA_DB) -> tuple[float, float] | None:
     """How much one jammer more than ``known`` (each its position and effective power, dBW)
     explains the uploads, as ``estimate_jammers`` weighs it: the best weighted LLR of the
     coarse search over the powers the scenario expects, and BIC's penalty it must beat to be
     counted beside others. None with too few located reports."""
     searched = _coarse_search(scenario, Reports.of(scenario, xy, levels, reported_db),
-                              _Reading(no_jammer_levels, None), report_sigma_db, known)
+                              _Reading(no_jammer_levels, no_jammer_db), report_sigma_db, known)
     if searched is None:
         return None
     return (float(_of_expected_powers(scenario, searched).llr.max()),
