@@ -38,8 +38,10 @@ _OFFSET_RANGE_DB = 40.0
 
 def log_band_probability(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     """log(Phi(upper) - Phi(lower)), taken in the tail where the difference does not
-    cancel; -inf for an empty band."""
-    flip = lower + upper > 0
+    cancel; -inf for an empty band. Infinite bounds are welcome: a band from -inf to +inf
+    (where no flip is needed) has probability 1."""
+    with np.errstate(invalid="ignore"):
+        flip = lower + upper > 0
     lower, upper = np.where(flip, -upper, lower), np.where(flip, -lower, upper)
     log_upper = log_ndtr(upper)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -88,19 +90,23 @@ class ReportTables:
         bounds = np.concatenate([[-np.inf], edges_db, [np.inf]])
         self.level_count = len(bounds) - 1
         spread = (rounded * _SD_STEP_DB)[:, None, None]
-        self.values = with_outliers(
-            log_band_probability((bounds[:-1, None] - sinr_db) / spread,
-                                 (bounds[1:, None] - sinr_db) / spread),
-            outlier_share, 1.0 / self.level_count).ravel()
+        # A spread under half a step rounds to 0 (icc2021's exact receivers read at the
+        # survey map's 0.02 dB): its bounds over it are infinite, and its band a step, 1
+        # inside and 0 outside, which log_band_probability takes as it is.
         self.step_db = step_db
-        if step_db is not None:  # offsets of a report from the SINR, as for the SINR above
-            offsets_db = np.arange(-_OFFSET_RANGE_DB, _OFFSET_RANGE_DB, _SINR_STEP_DB)
-            spread = spread[:, 0]
-            self.db_values = with_outliers(
-                log_band_probability((offsets_db - step_db / 2.0) / spread,
-                                     (offsets_db + step_db / 2.0) / spread),
-                outlier_share, step_db / OUTLIER_SPAN_DB).ravel()
-            self.offset_count = len(offsets_db)
+        with np.errstate(divide="ignore"):
+            self.values = with_outliers(
+                log_band_probability((bounds[:-1, None] - sinr_db) / spread,
+                                     (bounds[1:, None] - sinr_db) / spread),
+                outlier_share, 1.0 / self.level_count).ravel()
+            if step_db is not None:  # offsets of a report from the SINR, as for the SINR
+                offsets_db = np.arange(-_OFFSET_RANGE_DB, _OFFSET_RANGE_DB, _SINR_STEP_DB)
+                spread = spread[:, 0]
+                self.db_values = with_outliers(
+                    log_band_probability((offsets_db - step_db / 2.0) / spread,
+                                         (offsets_db + step_db / 2.0) / spread),
+                    outlier_share, step_db / OUTLIER_SPAN_DB).ravel()
+                self.offset_count = len(offsets_db)
 
     def weighted_tables(self, believed_db: np.ndarray, loss_db: np.ndarray, levels: np.ndarray,
                         reported_db: np.ndarray, weights: np.ndarray) -> np.ndarray:

@@ -8,6 +8,7 @@ of such sums and more; the estimate's tables are compared at their own resolutio
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -151,6 +152,28 @@ def test_a_db_reports_likelihood_is_its_report_steps_interval(reporting):
                 - norm.cdf((np.array([0.25, 3.75]) - [1.0, 4.0]) / spread))
     np.testing.assert_allclose(probability, (1 - OUTLIER_SHARE) * interval
                                + OUTLIER_SHARE * 0.5 / 40.0, rtol=1e-9)
+
+
+def test_a_spread_that_rounds_to_nothing_reads_a_report_by_its_band_alone(reporting):
+    """A spread under half the tables' step (the exact receivers' 0.02 dB) is read as none: a
+    report of the level whose band holds the SINR has probability 1 but for the outlier
+    share, any other the outlier floor; a dB report, 1 within its 0.5 dB step. Built
+    without a warning."""
+    radio = RadioModel(reporting, shadowed=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tables = ReportTables(radio.level_edges_db, np.array([0.02]), OUTLIER_SHARE, 0.5)
+    rows = np.zeros(3, dtype=np.int64)
+    believed = np.array([-10.0, -2.6, 5.0])  # in the bands of levels 0, 1 and 2
+    inside = math.log(1 - OUTLIER_SHARE + OUTLIER_SHARE / 3)
+    floor = math.log(OUTLIER_SHARE / 3)
+    for level in range(3):
+        got = tables.log_probability(believed, np.full(3, level), rows)
+        np.testing.assert_allclose(got, np.where(np.arange(3) == level, inside, floor),
+                                   rtol=1e-12)
+    got = tables.log_probability(believed, rows, rows, believed + np.array([0.1, -0.1, 2.0]))
+    np.testing.assert_allclose(got, [math.log(1 - OUTLIER_SHARE + OUTLIER_SHARE * 0.5 / 40.0)] * 2
+                               + [math.log(OUTLIER_SHARE * 0.5 / 40.0)], rtol=1e-12)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
