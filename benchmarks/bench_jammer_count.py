@@ -3,9 +3,10 @@ flying for 20 s after the jammers appeared: 40 seeded settings, ten each of 0, 1
 jammers, each anywhere in the area at a power of the scenario's training range; uploads come
 from ``online_map_sim.Fleet``.
 
-First the cloud itself: its mapper flown over 10 s of quiet and then 20 s of the jammers,
+First the cloud itself: its mapper flown over a quiet spell and then 20 s of the jammers,
 and the estimate behind its map at the end (none when it detected no change: no jammer). In
-the idealized world.
+the idealized world after 10 s of quiet, and in the shadowed world with dB reports after 60 s
+(a dB report enters the cloud's no-jammer reference 10 s after it was taken).
 
 Then ``estimate_jammers`` alone on the 20 s of uploads, reading them as the cloud does (its
 no-jammer model and report spread, ``EstimateInputs``): in the idealized world with level
@@ -48,7 +49,10 @@ SETTINGS = 40
 MOST_JAMMERS = 3  # settings cycle through 0..MOST_JAMMERS jammers
 FLIGHT_S = 20.0  # the target's
 LONGER_FLIGHT_S = 120.0
-QUIET_S = 10  # the cloud's flight before the jammers appear, to settle on the survey map
+# The cloud's flight before the jammers appear: to settle on the survey map, and in the
+# shadowed world with dB reports to gather a no-jammer reference.
+QUIET_S = 10
+REFERENCE_QUIET_S = 60
 UAVS = 4
 
 # What each setting's count was: the true jammers, and the estimate's jammers (None: no
@@ -60,11 +64,16 @@ def run() -> list[Figure]:
     shadowed = load_scenario("icc2021-shadowed")
     reporting = shadowed.changed({"uav.report": "db"}, name="icc2021-shadowed, dB reports")
     idealized = load_scenario("icc2021")
-    return (tally(f"{idealized.name}, the cloud's count after {FLIGHT_S:.0f} s of {UAVS} UAVs",
-                  [_cloud_count(idealized, k, FLIGHT_S) for k in range(SETTINGS)], True)
+    return (cloud_figures(idealized, QUIET_S) + cloud_figures(reporting, REFERENCE_QUIET_S)
             + count_figures(idealized, FLIGHT_S) + count_figures(reporting, FLIGHT_S)
             + count_figures(idealized, LONGER_FLIGHT_S)
             + evidence_figures(idealized, FLIGHT_S) + evidence_figures(idealized, LONGER_FLIGHT_S))
+
+
+def cloud_figures(scenario: Scenario, quiet_s: float) -> list[Figure]:
+    """The cloud's counts after ``FLIGHT_S`` of each setting's jammers."""
+    return tally(f"{scenario.name}, the cloud's count after {FLIGHT_S:.0f} s of {UAVS} UAVs",
+                 [_cloud_count(scenario, k, quiet_s) for k in range(SETTINGS)], True)
 
 
 def count_figures(scenario: Scenario, flight_s: float) -> list[Figure]:
@@ -182,8 +191,8 @@ def _uploads(scenario: Scenario, seed: int,
     return jammers, MeasurementBatch.concatenate(batches)
 
 
-def _cloud_count(scenario: Scenario, seed: int, flight_s: float) -> Counted:
-    """The cloud's mapper over ``QUIET_S`` of quiet, then ``flight_s`` of setting ``seed``'s
+def _cloud_count(scenario: Scenario, seed: int, quiet_s: float) -> Counted:
+    """The cloud's mapper over ``quiet_s`` of quiet, then ``FLIGHT_S`` of setting ``seed``'s
     jammers; its count at the end: the jammers of the estimate behind its map, none where it
     detected no change, undecided while it handles one without an estimate."""
     jammers, rng = _jammers(scenario, seed)
@@ -194,10 +203,10 @@ def _cloud_count(scenario: Scenario, seed: int, flight_s: float) -> Counted:
                               seed=seed, retrain=RetrainConfig(max_seconds=None))
     fleet = Fleet(scenario, UAVS, rng)
     dt = scenario.timing.step_s
-    for step in range(int((QUIET_S + flight_s) / dt)):
+    for step in range(int((quiet_s + FLIGHT_S) / dt)):
         now[0] = step * dt
         fleet.fly()
-        mapper.ingest(fleet.uploads(jammers if now[0] >= QUIET_S else [], now[0], step))
+        mapper.ingest(fleet.uploads(jammers if now[0] >= quiet_s else [], now[0], step))
     if mapper.estimate is not None:
         return jammers, list(mapper.estimate.members)
     return jammers, [] if mapper.state()["phase"] == "watching" else None
