@@ -229,6 +229,9 @@ def test_the_evidence_for_one_jammer_more_falls_once_the_jammers_are_known(scena
     def one_more(known):
         return one_more_evidence(scenario, xy, levels, known, no_jammer_levels=no_jammer)
 
+    # Measured: each 61-63 nats against a penalty of 10.3, a third -1.2. The float32 sums of
+    # 2,000 reports, each at most 5.8 nats (the outlier floor), round by under n eps sum|x| =
+    # 2,000 x 6e-8 x 11,600 = 1.4 nats: far inside both margins.
     for index in range(2):
         llr, penalty = one_more(placed[:index] + placed[index + 1:])
         assert llr > 2 * penalty

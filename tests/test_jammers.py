@@ -118,7 +118,8 @@ def test_a_late_map_shows_a_driving_jammer_where_it_was_by_hand(scenario):
     late = RasterMaps(scenario, late_steps=2)
     hover = np.zeros((1, 2))
     for step in range(6):
-        # 2 s late at 3 m/s: 6 m behind, and at the drive's start for the episode's first 2 s.
+        # 2 s late at 3 m/s: 6 m behind, and at the drive's start for the episode's first 2 s
+        # (float64 along one leg: approx's default 1e-6 relative is far above its ulps).
         seen_x = -40.0 + 3.0 * max(0, step - 2)
         assert world.jammers_as_of(0, late_steps=2)[0][:2] == pytest.approx((seen_x, 0.0))
         assert world.jammers_as_of(0, late_steps=-1)[0][0] == pytest.approx(
