@@ -22,8 +22,6 @@ not."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
 from benchmarks.common import Figure
@@ -32,7 +30,7 @@ from cloud_service.estimate_inputs import EstimateInputs
 from cloud_service.estimated_jammer import JammerEstimate
 from cloud_service.jammer_estimation import PRESENCE_LLR, estimate_jammers, one_more_evidence
 from cloud_service.map_refit import prior_positions
-from cloud_service.online_map_sim import Fleet
+from cloud_service.online_map_sim import Fleet, SimulatedClock
 from cloud_service.report_models import ReportModels
 from cloud_service.sinr_mapping import OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
@@ -128,15 +126,9 @@ def evidence_figures(scenario: Scenario, flight_s: float) -> list[Figure]:
         truth = radio.evaluate(xy, jammers).level
         visible += all((radio.evaluate(xy, _others(jammers, i)).level != truth).any()
                        for i in range(len(jammers)))
-
-        def one_more(known: list[JammerParams], xy=xy, levels=levels,
-                     keywords=keywords) -> bool:
-            llr, penalty = one_more_evidence(
-                scenario, xy, levels, [_placed(scenario, jammer) for jammer in known],
-                **keywords)
-            return llr > (penalty if known else PRESENCE_LLR)
-
-        countable += _counted_by_perfect_search(jammers, one_more)
+        countable += (all(_one_more_counted(scenario, xy, levels, keywords,
+                                            _others(jammers, i)) for i in range(len(jammers)))
+                      and not _one_more_counted(scenario, xy, levels, keywords, jammers))
     name = f"{scenario.name}, {flight_s:.0f} s of {UAVS} UAVs"
     return [Figure(f"{name}: settings where each jammer changes a report's level", visible,
                    f"of {SETTINGS}"),
@@ -144,12 +136,13 @@ def evidence_figures(scenario: Scenario, flight_s: float) -> list[Figure]:
                    f"of {SETTINGS}")]
 
 
-def _counted_by_perfect_search(jammers: list[JammerParams],
-                               one_more: Callable[[list[JammerParams]], bool]) -> bool:
-    """Whether a perfect search counts ``jammers`` right: each one counted with the others
-    known, and no one more (``one_more(known)``: whether one more than ``known`` is)."""
-    return (all(one_more(_others(jammers, index)) for index in range(len(jammers)))
-            and not one_more(jammers))
+def _one_more_counted(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, keywords: dict,
+                      known: list[JammerParams]) -> bool:
+    """Whether the cloud's likelihood, searched perfectly, counts one jammer more than
+    ``known``: past ``PRESENCE_LLR`` alone, past BIC's penalty beside others."""
+    llr, penalty = one_more_evidence(scenario, xy, levels,
+                                     [_placed(scenario, jammer) for jammer in known], **keywords)
+    return llr > (penalty if known else PRESENCE_LLR)
 
 
 def _others(jammers: list[JammerParams], index: int) -> list[JammerParams]:
@@ -197,16 +190,16 @@ def _cloud_count(scenario: Scenario, seed: int, quiet_s: float) -> Counted:
     detected no change, undecided while it handles one without an estimate."""
     jammers, rng = _jammers(scenario, seed)
     survey, card = load_network(sinr_map_for(scenario), {"kind": "sinr_map"})
-    now = [0.0]
+    clock = SimulatedClock()
     mapper = OnlineSinrMapper(scenario, SinrMemory(":memory:", MeasurementSpec.of(scenario)),
-                              survey, card["accuracy"], clock=lambda: now[0], background=False,
+                              survey, card["accuracy"], clock=clock, background=False,
                               seed=seed, retrain=RetrainConfig(max_seconds=None))
     fleet = Fleet(scenario, UAVS, rng)
     dt = scenario.timing.step_s
     for step in range(int((quiet_s + FLIGHT_S) / dt)):
-        now[0] = step * dt
+        clock.now = step * dt
         fleet.fly()
-        mapper.ingest(fleet.uploads(jammers if now[0] >= quiet_s else [], now[0], step))
+        mapper.ingest(fleet.uploads(jammers if clock.now >= quiet_s else [], clock.now, step))
     if mapper.estimate is not None:
         return jammers, list(mapper.estimate.members)
     return jammers, [] if mapper.state()["phase"] == "watching" else None

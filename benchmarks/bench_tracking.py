@@ -28,7 +28,7 @@ from cloud_service.change_handling import RetrainConfig
 from cloud_service.driving_jammer import estimate_driving_jammer
 from cloud_service.jammer_estimation import estimate_jammer
 from cloud_service.jammer_tracking import track_jammer
-from cloud_service.online_map_sim import Fleet
+from cloud_service.online_map_sim import Fleet, SimulatedClock
 from cloud_service.sinr_mapping import OnlineSinrMapper
 from cloud_service.sinr_memory import SinrMemory
 from cloud_service.upload_positions import positions_from_features
@@ -79,21 +79,21 @@ def errors_in_service(scenario: Scenario, survey, accuracy: float,
     """For each second of one crossing, how far the estimate behind the map in service
     (published at least the cloud's latency before) lies from the jammer; None while the map
     in service has none."""
-    now = [0.0]
+    clock = SimulatedClock()
     memory = SinrMemory(":memory:", MeasurementSpec.of(scenario))
-    mapper = OnlineSinrMapper(scenario, memory, survey, accuracy, clock=lambda: now[0],
+    mapper = OnlineSinrMapper(scenario, memory, survey, accuracy, clock=clock,
                               background=False, seed=seed,
                               retrain=RetrainConfig(max_seconds=None))
     fleet = Fleet(scenario, DRIVING_FIT_UAVS, np.random.default_rng([seed, 7]))
     jammer = scenario.flown_jammers[0]
     for step in range(QUIET_S + CROSSING_S):
-        now[0] = float(step)
+        clock.now = float(step)
         fleet.fly()
         driving = []
         if step >= QUIET_S:
             x, y = position_at(jammer, float(step - QUIET_S))
             driving = [JammerParams(x, y, jammer.power_w, jammer.height_m)]
-        mapper.ingest(fleet.uploads(driving, now[0], step))
+        mapper.ingest(fleet.uploads(driving, clock.now, step))
     served = [event for event in mapper.events
               if event["type"] in ("jammer_estimated", "estimate_withdrawn")]
     latency = scenario.online_map.cloud_latency_s
