@@ -13,12 +13,17 @@ no-jammer model and report spread, ``EstimateInputs``): in the idealized world w
 reports, in the shadowed world with dB reports (with no dB reference yet), and in the
 idealized world again after 120 s, to show what longer flights bring.
 
-Last, what the idealized world's 20 s and 120 s hold for any search: in how many settings
+Then what the idealized world's 20 s and 120 s hold for any search: in how many settings
 every jammer changes the level of some report (with it and without it, the others there),
 and in how many the cloud's likelihood would count right were the search perfect: each
 jammer, the others given where they are, explains the uploads by more than the rule asks
 (``PRESENCE_LLR`` alone, BIC's penalty beside others), and one more, all of them given, does
-not."""
+not. That flatters the likelihood: a search weighs each jammer against the others placed
+wherever they explain the uploads best, which may explain them better than the true others.
+
+Last, the cloud's count, ``estimate_jammers``' and that ceiling in the idealized world after 20 s
+of a denser fleet (``DENSER_UAVS``): whether the target lies past what four UAVs' uploads hold
+or past the search."""
 
 from __future__ import annotations
 
@@ -51,7 +56,10 @@ LONGER_FLIGHT_S = 120.0
 # shadowed world with dB reports to gather a no-jammer reference.
 QUIET_S = 10
 REFERENCE_QUIET_S = 60
-UAVS = 4
+UAVS = 4  # the target's
+# A denser fleet, to tell what the search loses from what the uploads lack: 16 UAVs also met
+# the convoy's tracking target.
+DENSER_UAVS = 16
 
 # What each setting's count was: the true jammers, and the estimate's jammers (None: no
 # count yet).
@@ -65,25 +73,29 @@ def run() -> list[Figure]:
     return (cloud_figures(idealized, QUIET_S) + cloud_figures(reporting, REFERENCE_QUIET_S)
             + count_figures(idealized, FLIGHT_S) + count_figures(reporting, FLIGHT_S)
             + count_figures(idealized, LONGER_FLIGHT_S)
-            + evidence_figures(idealized, FLIGHT_S) + evidence_figures(idealized, LONGER_FLIGHT_S))
+            + evidence_figures(idealized, FLIGHT_S) + evidence_figures(idealized, LONGER_FLIGHT_S)
+            + cloud_figures(idealized, QUIET_S, DENSER_UAVS)
+            + count_figures(idealized, FLIGHT_S, DENSER_UAVS)
+            + evidence_figures(idealized, FLIGHT_S, DENSER_UAVS))
 
 
-def cloud_figures(scenario: Scenario, quiet_s: float) -> list[Figure]:
+def cloud_figures(scenario: Scenario, quiet_s: float, uavs: int = UAVS) -> list[Figure]:
     """The cloud's counts after ``FLIGHT_S`` of each setting's jammers."""
-    return tally(f"{scenario.name}, the cloud's count after {FLIGHT_S:.0f} s of {UAVS} UAVs",
-                 [_cloud_count(scenario, k, quiet_s) for k in range(SETTINGS)], True)
+    return tally(f"{scenario.name}, the cloud's count after {FLIGHT_S:.0f} s of {uavs} UAVs",
+                 [_cloud_count(scenario, k, quiet_s, uavs) for k in range(SETTINGS)],
+                 uavs == UAVS)
 
 
-def count_figures(scenario: Scenario, flight_s: float) -> list[Figure]:
+def count_figures(scenario: Scenario, flight_s: float, uavs: int = UAVS) -> list[Figure]:
     """``estimate_jammers``' counts from each setting's uploads, read as the cloud reads."""
     inputs = _cloud_reading(scenario)
     counted = []
     for k in range(SETTINGS):
-        jammers, data = _uploads(scenario, k, flight_s)
+        jammers, data = _uploads(scenario, k, flight_s, uavs)
         xy, levels, keywords = inputs.of(data)
         counted.append((jammers, estimate_jammers(scenario, xy, levels, **keywords)))
-    return tally(f"{scenario.name}, jammers counted from {flight_s:.0f} s of {UAVS} UAVs",
-                 counted, flight_s == FLIGHT_S)
+    return tally(f"{scenario.name}, jammers counted from {flight_s:.0f} s of {uavs} UAVs",
+                 counted, flight_s == FLIGHT_S and uavs == UAVS)
 
 
 def tally(name: str, counted: list[Counted], targeted: bool) -> list[Figure]:
@@ -114,14 +126,14 @@ def tally(name: str, counted: list[Counted], targeted: bool) -> list[Figure]:
     return figures
 
 
-def evidence_figures(scenario: Scenario, flight_s: float) -> list[Figure]:
+def evidence_figures(scenario: Scenario, flight_s: float, uavs: int = UAVS) -> list[Figure]:
     """What the uploads of each setting hold, for any search and for the cloud's likelihood
     searched perfectly (the module's docstring)."""
     radio = RadioModel(scenario)
     inputs = _cloud_reading(scenario)
     visible = countable = 0
     for k in range(SETTINGS):
-        jammers, data = _uploads(scenario, k, flight_s)
+        jammers, data = _uploads(scenario, k, flight_s, uavs)
         xy, levels, keywords = inputs.of(data)
         truth = radio.evaluate(xy, jammers).level
         visible += all((radio.evaluate(xy, _others(jammers, i)).level != truth).any()
@@ -129,7 +141,7 @@ def evidence_figures(scenario: Scenario, flight_s: float) -> list[Figure]:
         countable += (all(_one_more_counted(scenario, xy, levels, keywords,
                                             _others(jammers, i)) for i in range(len(jammers)))
                       and not _one_more_counted(scenario, xy, levels, keywords, jammers))
-    name = f"{scenario.name}, {flight_s:.0f} s of {UAVS} UAVs"
+    name = f"{scenario.name}, {flight_s:.0f} s of {uavs} UAVs"
     return [Figure(f"{name}: settings where each jammer changes a report's level", visible,
                    f"of {SETTINGS}"),
             Figure(f"{name}: settings a perfect search would count right", countable,
@@ -171,11 +183,11 @@ def _jammers(scenario: Scenario, seed: int) -> tuple[list[JammerParams], np.rand
             for _ in range(seed % (MOST_JAMMERS + 1))], rng
 
 
-def _uploads(scenario: Scenario, seed: int,
-             flight_s: float) -> tuple[list[JammerParams], MeasurementBatch]:
-    """Setting ``seed``'s jammers and the uploads of ``flight_s`` of the fleet."""
+def _uploads(scenario: Scenario, seed: int, flight_s: float,
+             uavs: int) -> tuple[list[JammerParams], MeasurementBatch]:
+    """Setting ``seed``'s jammers and the uploads of ``flight_s`` of a fleet of ``uavs``."""
     jammers, rng = _jammers(scenario, seed)
-    fleet = Fleet(scenario, UAVS, rng)
+    fleet = Fleet(scenario, uavs, rng)
     dt = scenario.timing.step_s
     batches = []
     for step in range(int(flight_s / dt)):
@@ -184,7 +196,7 @@ def _uploads(scenario: Scenario, seed: int,
     return jammers, MeasurementBatch.concatenate(batches)
 
 
-def _cloud_count(scenario: Scenario, seed: int, quiet_s: float) -> Counted:
+def _cloud_count(scenario: Scenario, seed: int, quiet_s: float, uavs: int) -> Counted:
     """The cloud's mapper over ``quiet_s`` of quiet, then ``FLIGHT_S`` of setting ``seed``'s
     jammers; its count at the end: the jammers of the estimate behind its map, none where it
     detected no change, undecided while it handles one without an estimate."""
@@ -194,7 +206,7 @@ def _cloud_count(scenario: Scenario, seed: int, quiet_s: float) -> Counted:
     mapper = OnlineSinrMapper(scenario, SinrMemory(":memory:", MeasurementSpec.of(scenario)),
                               survey, card["accuracy"], clock=clock, background=False,
                               seed=seed, retrain=RetrainConfig(max_seconds=None))
-    fleet = Fleet(scenario, UAVS, rng)
+    fleet = Fleet(scenario, uavs, rng)
     dt = scenario.timing.step_s
     for step in range(int((quiet_s + FLIGHT_S) / dt)):
         clock.now = step * dt
