@@ -1,7 +1,7 @@
 """How many jammers the cloud counts, and where it places each, from the uploads of four UAVs
-flying for 20 s after the jammers appeared: 40 seeded settings, ten each of 0, 1, 2 and 3
-jammers, each anywhere in the area at a power of the scenario's training range; uploads come
-from ``online_map_sim.Fleet``.
+(the target's; last, sixteen) flying for 20 s after the jammers appeared: 40 seeded
+settings, ten each of 0, 1, 2 and 3 jammers, each anywhere in the area at a power of the
+scenario's training range; uploads come from ``online_map_sim.Fleet``.
 
 First the cloud itself: its mapper flown over a quiet spell and then 20 s of the jammers,
 and the estimate behind its map at the end (none when it detected no change: no jammer). In
