@@ -3,15 +3,19 @@
 settings, ten each of 0, 1, 2 and 3 jammers, each anywhere in the area at a power of the
 scenario's training range; uploads come from ``online_map_sim.Fleet``.
 
-First the cloud itself: its mapper flown over a quiet spell and then 20 s of the jammers,
-and the estimate behind its map at the end (none when it detected no change: no jammer). In
-the idealized world after 10 s of quiet, and in the shadowed world with dB reports after 60 s
-(a dB report enters the cloud's no-jammer reference 10 s after it was taken).
+A count is right where it is the true number of jammers, whether or not each is placed yet
+(its estimate converged); the figures also say where every jammer was placed too.
 
-Then ``estimate_jammers`` alone on the 20 s of uploads, reading them as the cloud does (its
-no-jammer model and report spread, ``EstimateInputs``): in the idealized world with level
-reports, in the shadowed world with dB reports (with no dB reference yet), and in the
-idealized world again after 120 s, to show what longer flights bring.
+First the cloud itself: its mapper flown over a quiet spell and then 20 s of the jammers, and
+its count at the end (none when it detected no change: no jammer), beside the estimate behind
+its map. In the idealized world after 10 s of quiet, and in the shadowed world with dB reports
+after 60 s (a dB report enters the cloud's no-jammer reference 10 s after it was taken).
+
+Then the estimator alone (``locate_jammer``, whose estimate is ``estimate_jammers``') on the
+20 s of uploads, reading them as the cloud does (its no-jammer model and report spread,
+``EstimateInputs``): in the idealized world with level reports, in the shadowed world with dB
+reports (with no dB reference yet), and in the idealized world again after 120 s, to show what
+longer flights bring.
 
 Then what the idealized world's 20 s and 120 s hold for any search: in how many settings
 every jammer changes the level of some report (with it and without it, the others there),
@@ -21,11 +25,13 @@ jammer, the others given where they are, explains the uploads by more than the r
 not. That flatters the likelihood: a search weighs each jammer against the others placed
 wherever they explain the uploads best, which may explain them better than the true others.
 
-Last, the cloud's count, ``estimate_jammers``' and that ceiling in the idealized world after 20 s
+Last, the cloud's count, the estimator's and that ceiling in the idealized world after 20 s
 of a denser fleet (``DENSER_UAVS``): whether the target lies past what four UAVs' uploads hold
 or past the search."""
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
@@ -33,7 +39,7 @@ from benchmarks.common import Figure
 from cloud_service.change_handling import RetrainConfig
 from cloud_service.estimate_inputs import EstimateInputs
 from cloud_service.estimated_jammer import JammerEstimate
-from cloud_service.jammer_estimation import PRESENCE_LLR, estimate_jammers, one_more_evidence
+from cloud_service.jammer_estimation import PRESENCE_LLR, locate_jammer, one_more_evidence
 from cloud_service.map_refit import prior_positions
 from cloud_service.online_map_sim import Fleet, SimulatedClock
 from cloud_service.report_models import ReportModels
@@ -61,9 +67,14 @@ UAVS = 4  # the target's
 # the convoy's tracking target.
 DENSER_UAVS = 16
 
-# What each setting's count was: the true jammers, and the estimate's jammers (None: no
-# count yet).
-Counted = tuple[list[JammerParams], list[JammerEstimate] | None]
+
+
+class Counted(NamedTuple):
+    """What a setting's count was."""
+
+    jammers: list[JammerParams]  # the truth
+    count: int | None  # how many were counted, placed or not; None: no count yet
+    placed: list[JammerEstimate]  # those the estimate placed
 
 
 def run() -> list[Figure]:
@@ -87,42 +98,47 @@ def cloud_figures(scenario: Scenario, quiet_s: float, uavs: int = UAVS) -> list[
 
 
 def count_figures(scenario: Scenario, flight_s: float, uavs: int = UAVS) -> list[Figure]:
-    """``estimate_jammers``' counts from each setting's uploads, read as the cloud reads."""
+    """The estimator's counts from each setting's uploads, read as the cloud reads."""
     inputs = _cloud_reading(scenario)
     counted = []
     for k in range(SETTINGS):
         jammers, data = _uploads(scenario, k, flight_s, uavs)
         xy, levels, keywords = inputs.of(data)
-        counted.append((jammers, estimate_jammers(scenario, xy, levels, **keywords)))
+        fit = locate_jammer(scenario, xy, levels, **keywords)
+        counted.append(Counted(jammers, fit.count,
+                               [] if fit.estimate is None else list(fit.estimate.members)))
     return tally(f"{scenario.name}, jammers counted from {flight_s:.0f} s of {uavs} UAVs",
                  counted, flight_s == FLIGHT_S and uavs == UAVS)
 
 
 def tally(name: str, counted: list[Counted], targeted: bool) -> list[Figure]:
-    """The counts right, wrong and undecided, by the true count, and how far each jammer
-    counted right lies from its estimate."""
-    right, undecided, errors = 0, 0, []
+    """The counts right, wrong and undecided, by the true count; those right with every
+    jammer placed, and how far each of those lies from its estimate."""
+    right, placed, undecided, errors = 0, 0, 0, []
     by_count = np.zeros((MOST_JAMMERS + 1, 3), dtype=int)  # truth x (right, wrong, undecided)
-    for jammers, found in counted:
-        if found is None:
+    for jammers, count, found in counted:
+        if count is None:
             undecided += 1
             by_count[len(jammers), 2] += 1
             continue
-        hit = len(found) == len(jammers)
+        hit = count == len(jammers)
         right += hit
         by_count[len(jammers), 0 if hit else 1] += 1
-        errors += [min(np.hypot(e.x - j.x, e.y - j.y) for e in found) for j in jammers] if hit \
-            else []
+        if hit and len(found) == count:
+            placed += 1
+            errors += [min(np.hypot(e.x - j.x, e.y - j.y) for e in found) for j in jammers]
     figures = [Figure(f"{name}: count right, of {SETTINGS} settings of 0-{MOST_JAMMERS}",
                       100.0 * right / SETTINGS, "%", 95.0 if targeted else None),
+               Figure(f"{name}: count right with every jammer placed",
+                      100.0 * placed / SETTINGS, "%"),
                Figure(f"{name}: undecided (no count yet)", 100.0 * undecided / SETTINGS, "%")]
     for count, (hit, wrong, open_) in enumerate(by_count.tolist()):
         figures += [Figure(f"{name}: {count} jammer(s), counted right", hit, "settings"),
                     Figure(f"{name}: {count} jammer(s), counted wrong", wrong, "settings"),
                     Figure(f"{name}: {count} jammer(s), undecided", open_, "settings")]
     if errors:
-        figures.append(Figure(f"{name}: position error of each jammer when counted right, "
-                              "median", float(np.median(errors)), "m"))
+        figures.append(Figure(f"{name}: position error of each jammer when counted right and "
+                              "placed, median", float(np.median(errors)), "m"))
     return figures
 
 
@@ -198,8 +214,8 @@ def _uploads(scenario: Scenario, seed: int, flight_s: float,
 
 def _cloud_count(scenario: Scenario, seed: int, quiet_s: float, uavs: int) -> Counted:
     """The cloud's mapper over ``quiet_s`` of quiet, then ``FLIGHT_S`` of setting ``seed``'s
-    jammers; its count at the end: the jammers of the estimate behind its map, none where it
-    detected no change, undecided while it handles one without an estimate."""
+    jammers; its count at the end (none where it detected no change), and the jammers of the
+    estimate behind its map."""
     jammers, rng = _jammers(scenario, seed)
     survey, card = load_network(sinr_map_for(scenario), {"kind": "sinr_map"})
     clock = SimulatedClock()
@@ -212,6 +228,5 @@ def _cloud_count(scenario: Scenario, seed: int, quiet_s: float, uavs: int) -> Co
         clock.now = step * dt
         fleet.fly()
         mapper.ingest(fleet.uploads(jammers if clock.now >= quiet_s else [], clock.now, step))
-    if mapper.estimate is not None:
-        return jammers, list(mapper.estimate.members)
-    return jammers, [] if mapper.state()["phase"] == "watching" else None
+    return Counted(jammers, mapper.state()["jammers_counted"],
+                   [] if mapper.estimate is None else list(mapper.estimate.members))

@@ -221,33 +221,24 @@ def estimate_jammers(
     searched = _coarse_search(scenario, reports, reading, report_sigma_db)
     if searched is None:
         return None
-    counted = _counted(scenario, reports, reading, report_sigma_db, searched, most)
+    counted = _counted(scenario, reports, reading, report_sigma_db, searched,
+                       _greedy_placed(scenario, reports, reading, report_sigma_db, searched,
+                                      most))
     return None if counted is None else list(counted.members)
 
 
-def _counted(scenario: Scenario, reports: Reports, reading: _Reading, report_sigma_db: float,
-             searched: _Searched, most: int) -> JammerEstimate | None:
-    """The jammers the reports show, as one estimate of the set (``estimated_set``; with
-    ``present`` false, none), from their coarse search ``searched``; None when they cannot
-    tell yet.
-
-    Count: whether there is any is ``estimate_jammer``'s decision. Then, greedily, one more
-    is searched for with those found taken as known (their interference adds in Eq. (3)),
-    among the powers the scenario expects (its training range), and kept while it raises the
-    weighted log-likelihood by more than BIC's penalty,
+def _greedy_placed(scenario: Scenario, reports: Reports, reading: _Reading,
+                   report_sigma_db: float, searched: _Searched, most: int) -> list[Placed]:
+    """The jammers the reports show, each placed at a coarse hypothesis, from their coarse
+    search ``searched``: none while no jammer explains them by ``PRESENCE_LLR``. Then,
+    greedily, one more is searched for with those found taken as known (their interference
+    adds in Eq. (3)), among the powers the scenario expects (its training range), and kept
+    while it raises the weighted log-likelihood by more than BIC's penalty,
     ``JAMMER_PARAMETERS`` / 2 ln n over the n reports that count as independent; after each
     is added, every earlier one is placed again with all the others known (the first was
-    placed as if alone, and read the others' losses as its own). Placing means the coarse
-    search's best hypothesis. Each: one jammer is ``estimate_jammer``'s estimate; several
-    are each estimated with the others known, and must each converge as ``estimate_jammer``
-    asks (else None); each one's log-likelihood ratio is then against the others alone."""
-    def alone() -> JammerEstimate | None:
-        return _refitted(scenario, searched, _decide(
-            scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M),
-            lambda sigma_db: _coarse_search(scenario, reports, reading, sigma_db))
-
-    if searched.llr.max() < PRESENCE_LLR or most == 1:
-        return alone()
+    placed as if alone, and read the others' losses as its own). At most ``most``."""
+    if searched.llr.max() < PRESENCE_LLR:
+        return []
     penalty = _penalty(searched.evidence)
     placed = [_best_placed(searched)]
     while len(placed) < most:
@@ -260,21 +251,48 @@ def _counted(scenario: Scenario, reports: Reports, reading: _Reading, report_sig
             break
         placed = _placed_again(scenario, reports, reading, report_sigma_db,
                                [*placed, _best_placed(more)])
-    if len(placed) == 1:
-        return alone()
+    return placed
+
+
+def _counted(scenario: Scenario, reports: Reports, reading: _Reading, report_sigma_db: float,
+             searched: _Searched, placed: list[Placed]) -> JammerEstimate | None:
+    """The jammers the reports show, as one estimate of the set (``estimated_set``; with
+    ``present`` false, none), from their coarse search ``searched`` and the jammers
+    ``_greedy_placed`` placed on it; None when they cannot tell yet.
+
+    None or one placed: ``estimate_jammer``'s decision. Several: each is estimated with the
+    others known, and must converge as ``estimate_jammer`` asks (else None), its
+    log-likelihood ratio against the others alone past BIC's penalty; and each but the first
+    must stay of the powers the scenario expects once estimated, else the count is one
+    jammer less."""
+    if len(placed) <= 1:
+        return _refitted(scenario, searched, _decide(
+            scenario, searched, PRESENCE_LLR, EXCLUSION_LLR, MAX_POSITION_SD_M),
+            lambda sigma_db: _coarse_search(scenario, reports, reading, sigma_db))
     estimates = []
     for index in range(len(placed)):
         given = _coarse_search(scenario, reports, reading, report_sigma_db,
                                placed[:index] + placed[index + 1:])
-        estimate = _decide(scenario, given, penalty, EXCLUSION_LLR, MAX_POSITION_SD_M)
+        estimate = _decide(scenario, given, _penalty(searched.evidence), EXCLUSION_LLR,
+                           MAX_POSITION_SD_M)
         if estimate is None or not estimate.present:
             return None
         estimates.append(estimate)
     if not all(_expected(scenario, estimate.effective_power_dbm - 30.0)
                for estimate in estimates[1:]):
-        # ... and so must each one stay once estimated: else one jammer less.
-        return _counted(scenario, reports, reading, report_sigma_db, searched, len(placed) - 1)
+        return _counted(scenario, reports, reading, report_sigma_db, searched, _greedy_placed(
+            scenario, reports, reading, report_sigma_db, searched, len(placed) - 1))
     return estimated_set(estimates)
+
+
+def _shown(searched: _Searched, placed: list[Placed]) -> int | None:
+    """How many jammers the reports show, placed or not: those ``_greedy_placed`` placed, or
+    none where the reports rule out a jammer everywhere (``_decide``); None while they can
+    tell neither."""
+    if placed:
+        return len(placed)
+    _, search, llr = searched
+    return 0 if (llr[search.in_area, search.middle_of_range] < -EXCLUSION_LLR).all() else None
 
 
 def one_more_evidence(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
@@ -329,6 +347,10 @@ def _placed_again(scenario: Scenario, reports: Reports, reading: _Reading,
 class JammerFit(NamedTuple):
     estimate: JammerEstimate | None  # as ``estimate_jammers``, the set as one estimate
     hypotheses: JammerHypotheses | None  # as ``jammer_hypotheses``, when no estimate converged
+    # How many jammers the uploads show, by the count's rule, before each is placed within
+    # ``MAX_POSITION_SD_M`` (``_shown``): what the estimate counts where it converged; None
+    # while the uploads cannot tell.
+    count: int | None = None
 
 
 def locate_jammer(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, *,
@@ -338,17 +360,19 @@ def locate_jammer(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, *,
                   report_sigma_db: float = REPORT_SIGMA_DB) -> JammerFit:
     """``estimate_jammers`` as one estimate of the set (``estimated_set``) and, if it gives
     none, ``jammer_hypotheses``, each with its defaults but ``report_sigma_db``, from one
-    coarse search (most of the cost of each)."""
+    coarse search (most of the cost of each); and how many jammers the uploads show, which
+    the count's rule tells before every one converges."""
     reports = Reports.of(scenario, xy, levels, reported_db)
     reading = _Reading(no_jammer_levels, no_jammer_db)
     searched = _coarse_search(scenario, reports, reading, report_sigma_db)
     if searched is None:
         return JammerFit(None, None)
-    estimate = _counted(scenario, reports, reading, report_sigma_db, searched, MAX_JAMMERS)
+    placed = _greedy_placed(scenario, reports, reading, report_sigma_db, searched, MAX_JAMMERS)
+    estimate = _counted(scenario, reports, reading, report_sigma_db, searched, placed)
     if estimate is not None:
-        return JammerFit(estimate, None)
+        return JammerFit(estimate, None, len(estimate.members))
     return JammerFit(None, _hypotheses(scenario, searched, HYPOTHESES_MASS, MOST_HYPOTHESES,
-                                       HYPOTHESES_LLR))
+                                       HYPOTHESES_LLR), _shown(searched, placed))
 
 
 class FrameFit(NamedTuple):

@@ -21,6 +21,9 @@ class PublishedWeights(NamedTuple):
     refining_since: float | None = None
     # Corrected by the jammer's hypotheses while no estimate converges (see OnlineSinrMapper).
     provisional: bool = False
+    # How many jammers the uploads showed when it was fitted, placed or not (None: they could
+    # not tell): a provisional map's jammers are counted before they are placed.
+    jammers_counted: int | None = None
 
 
 class IngestReport(NamedTuple):

@@ -61,6 +61,7 @@ from shared.jammer_messages import (
     JammerEstimate,
     JammerInfo,
     JammersInForce,
+    describe_count,
     describe_estimate,
     describe_jammers,
     initial_jammers,
@@ -375,8 +376,9 @@ class CloudService:
                 self.log.info("jammer change detected (map v%d at %.1f%% on the last window)",
                               event["version"], 100 * event["accuracy"])
             elif event["type"] == "estimate_not_converged":
-                self.log.info("jammer estimate not converged on %d measurements; trying again "
-                              "as more arrive", event["measurements"])
+                self.log.info("jammer estimate not converged on %d measurements (%s); trying "
+                              "again as more arrive", event["measurements"],
+                              describe_count(event["jammers_counted"]))
             elif event["type"] == "estimate_withdrawn":
                 self.log.info("jammer estimate withdrawn: %.1f nats against it from the reports "
                               "since t=%.1f; the survey map is in service as v%d",
@@ -426,7 +428,8 @@ class CloudService:
                           describe_estimate(estimate))
         self._publish_event(SinrWeightsPublished(
             t=time.time(), source=ROLE, version=weights.version, accuracy=update.accuracy,
-            sha256=weights.sha256, path=str(path.resolve()), provisional=weights.provisional))
+            sha256=weights.sha256, path=str(path.resolve()), provisional=weights.provisional,
+            jammers_counted=weights.jammers_counted))
         self.log.info("%sSINR map v%d published (held-out accuracy %.1f%%)",
                       "provisional " if weights.provisional else "", weights.version,
                       100 * weights.accuracy)
@@ -459,6 +462,7 @@ def mapper_details(state: dict) -> dict:
     estimate = state["estimate"]
     return {"map_phase": state["phase"], "recent_accuracy": state["recent_accuracy"],
             "since_change": state["since_change"], "map_provisional": state["provisional"],
+            "jammers_counted": state["jammers_counted"],
             "estimate": None if estimate is None else describe_estimate(
                 estimate_message(estimate, state["map_version"], 0.0))}
 

@@ -174,6 +174,10 @@ class OnlineSinrMapper:
         and, if it was still being refined, the handling of the change that began at
         ``refining_since``, as if that map had just been fitted."""
         self.estimate = estimate
+        # How many jammers the cloud counts, placed or not: as its latest estimate try since
+        # the last change counted them (None: not yet, or the uploads could not tell), none
+        # once the reports withdrew every one, the rest when one of several went.
+        self._jammers_counted: int | None = 0 if estimate is None else len(estimate.members)
         self._watch = CorrectionWatch.of(
             self.scenario, estimate if estimate is not None and estimate.present else None,
             0.0 if estimate is None else self.report_models.survey_sigma_db)
@@ -246,6 +250,7 @@ class OnlineSinrMapper:
                     "phase": "watching" if change is None else change.phase,
                     "since_change": None if change is None else change.measurements,
                     "provisional": self._provisional, "estimate": self.estimate,
+                    "jammers_counted": self._jammers_counted,
                     # Nats the reports hold against the jammer the map was corrected for.
                     "withdrawal_evidence": None if self._watch.jammer is None
                     else self._watch.whole.statistic}
@@ -338,6 +343,7 @@ class OnlineSinrMapper:
         self.reference.discard_since(start)
         self._change = HandledChange(start, self.clock(), len(self.memory.since(start)),
                                      tracker=self._tracker(start))
+        self._jammers_counted = None
         self.events.append({"type": "change_detected", "t": self.clock(),
                             "version": self._version, "source": check.source,
                             "accuracy": float(np.mean(self._recent)), "change_time": start})
@@ -360,6 +366,7 @@ class OnlineSinrMapper:
         for what the reports since then show instead)."""
         start = gone.check.since
         self.estimate = gone.rest
+        self._jammers_counted = len(gone.rest.members)
         self._watch = CorrectionWatch.of(self.scenario, gone.rest, self._watch.sigma_db)
         self._change = HandledChange(start, self.clock(), len(self.memory.since(start)),
                                      gone.rest, confirmed=True, tracker=self._tracker(start))
@@ -379,10 +386,12 @@ class OnlineSinrMapper:
             self._settle_locked()
         withdrawn_version = self._version
         published = None
+        self.estimate, self._provisional = None, False
+        if self._change is None:
+            self._jammers_counted = 0
         if self._network is not self._base:
             published = self._serve_locked(self._base, to_bytes(self._base),
                                            self._base_accuracy, None, None, False)
-        self.estimate, self._provisional = None, False
         self._watch = CorrectionWatch.of(self.scenario)
         estimate = jammer if isinstance(jammer, JammerEstimate) else None
         self.events.append({
@@ -461,6 +470,9 @@ class OnlineSinrMapper:
         if self._closing.is_set():
             return
         estimate = located.estimate
+        with self._lock:
+            if self._change is change:
+                self._jammers_counted = located.count
         change.tried_at = len(data)
         change.tries += 1
         if estimate is None and change.estimate is not None:
@@ -472,7 +484,7 @@ class OnlineSinrMapper:
         if not change.failure_logged:
             change.failure_logged = True
             self.events.append({"type": "estimate_not_converged", "t": self.clock(),
-                                "measurements": len(data)})
+                                "measurements": len(data), "jammers_counted": located.count})
         # A jammer the uploads show but cannot place yet: a provisional map, corrected by every
         # place it may be in proportion to its probability, until an estimate converges.
         if located.hypotheses is not None:
@@ -595,7 +607,7 @@ class OnlineSinrMapper:
         self._version += 1
         self._network, self._accuracy, self._provisional = network, accuracy, provisional
         return PublishedWeights(weights, sha256(weights), self._version, accuracy, estimate,
-                                refining_since, provisional)
+                                refining_since, provisional, self._jammers_counted)
 
     def _log_published(self, published: PublishedWeights, samples: int,
                        train_seconds: float) -> None:

@@ -8,6 +8,7 @@ from typing import Any
 from shared.jammer_messages import (
     JammerEstimate,
     JammerInfo,
+    describe_count,
     describe_estimate,
     describe_jammers,
     recorded_one_jammer,
@@ -33,7 +34,10 @@ def describe_event(event: dict[str, Any]) -> str | None:
     if kind == "sinr_weights_published":
         accuracy = event.get("accuracy")
         what = "provisional SINR map" if event.get("provisional") else "SINR map"
+        counted = event.get("jammers_counted")
         return f"{what} v{event['version']} published" + (
+            f", {describe_count(counted)}, not placed yet"
+            if event.get("provisional") and counted is not None else "") + (
             "" if accuracy is None else f" (held-out accuracy {accuracy:.1%})")
     if kind == "weights_refused":
         version = event["version"] if event.get("version") is not None else "?"

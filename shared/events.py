@@ -62,6 +62,9 @@ class SinrWeightsPublished(_Event):
     path: str = Field(max_length=4096)  # the safetensors file of this version (cloud's disk)
     # Corrected by where the jammer may be while its estimate has not converged yet.
     provisional: bool = False
+    # How many jammers the uploads showed when the map was fitted, placed or not (None: they
+    # could not tell yet): a provisional map's are counted before they are placed.
+    jammers_counted: Count | None = Field(default=None, le=MAX_JAMMERS)
 
 
 class JammerEstimated(_Event):

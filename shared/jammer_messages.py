@@ -276,6 +276,13 @@ def describe_estimate(estimate: JammerEstimate) -> str:
     return " ".join(places) + f" ({estimate.measurements} measurements)"
 
 
+def describe_count(jammers_counted: int | None) -> str:
+    """How many jammers the cloud counted, for people."""
+    if jammers_counted is None:
+        return "no count yet"
+    return f"{jammers_counted} jammer{'' if jammers_counted == 1 else 's'} counted"
+
+
 def _velocity(estimate: JammerEstimate) -> str:
     if estimate.vx_mps is None or estimate.vy_mps is None:
         return ""

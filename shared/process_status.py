@@ -6,6 +6,7 @@ from typing import Literal
 
 from pydantic import Field
 
+from shared.jammer_messages import describe_count
 from shared.wire import Count, Finite, Message, Text
 
 Role = Literal["world", "cloud", "agent"]  # the processes that answer status queries
@@ -38,5 +39,6 @@ def mapper_summary(cloud: ProcessStatus | None) -> str:
         " (provisional)" if d.get("map_provisional") else "") + (
         f" {recent:.0%} on recent" if isinstance(recent, float) else "")
     if d["map_phase"] != "watching":
-        text += f", {d['map_phase']} ({d.get('since_change')} since change)"
+        text += (f", {d['map_phase']} ({d.get('since_change')} since change, "
+                 f"{describe_count(d.get('jammers_counted'))})")
     return text

@@ -244,6 +244,11 @@ def test_the_report_shows_a_run_of_refinements_as_its_first_and_last_map():
     assert lines[3].startswith("map v5, jammer at")
     # One between the first and the last: singular.
     assert map_history(provisional[1:])[1] == "  ... 1 provisional map ..."
+    # A provisional map says how many jammers the cloud counted before placing them.
+    counted = {**provisional[0], "jammers_counted": 1, "accuracy": 0.9}
+    assert map_history([counted]) == [
+        "provisional SINR map v1 published, 1 jammer counted, not placed yet "
+        "(held-out accuracy 90.0%)"]
 
 
 def test_the_mapper_summary_says_when_the_map_in_service_is_provisional():
@@ -254,7 +259,10 @@ def test_the_mapper_summary_says_when_the_map_in_service_is_provisional():
                              details={"recent_accuracy": 0.93, **details})
 
     assert mapper_summary(cloud(map_phase="estimating", since_change=120,
-                                map_provisional=True)) == (
-        "map v5 (provisional) 93% on recent, estimating (120 since change)")
+                                map_provisional=True, jammers_counted=2)) == (
+        "map v5 (provisional) 93% on recent, estimating (120 since change, 2 jammers counted)")
+    assert mapper_summary(cloud(map_phase="estimating", since_change=40,
+                                map_provisional=False, jammers_counted=None)) == (
+        "map v5 93% on recent, estimating (40 since change, no count yet)")
     assert mapper_summary(cloud(map_phase="watching", since_change=None,
                                 map_provisional=False)) == "map v5 93% on recent"

@@ -494,6 +494,33 @@ def test_locating_several_jammers_gives_them_as_one_set(scenario):
     assert fit.estimate.others == (counted[1],)
 
 
+def test_the_jammers_are_counted_before_they_are_placed(scenario):
+    """Reports along one straight path, which passes 6.1 m from each of two 1 W jammers, show
+    both but place neither: from one path a jammer's side is a mirror image and its distance
+    trades against its power, so each posterior spreads across the path, past the 10 m a
+    converged estimate allows. The fit counts two, and one where the first is alone. Exact
+    reports read at 0.3 dB, as the ideal world's cloud reads them (its spread is narrower
+    still)."""
+    truth = RadioModel(scenario)
+    along = np.linspace(-50.0, 50.0, 300)
+    xy = np.stack([along, 2.5 - 0.25 * along], axis=1)  # through (-25, 8.75) and (25, -3.75)
+    placed = [JammerParams(-25.0, 15.0, 1.0, scenario.jammer.height_m),
+              JammerParams(25.0, -10.0, 1.0, scenario.jammer.height_m)]
+    no_jammer = truth.evaluate(xy).level
+    for jammers in (placed, placed[:1]):
+        fit = locate_jammer(scenario, xy, truth.evaluate(xy, jammers).level,
+                            no_jammer_levels=no_jammer, report_sigma_db=0.3)
+        assert fit.estimate is None and fit.count == len(jammers)
+    # With no jammer the path rules none out where it never passed: no count yet. Reports
+    # over the whole area rule one out everywhere: none.
+    assert locate_jammer(scenario, xy, no_jammer, no_jammer_levels=no_jammer,
+                         report_sigma_db=0.3).count is None
+    everywhere = uniform_points(scenario, np.random.default_rng(0), 2000)
+    quiet = truth.evaluate(everywhere).level
+    assert locate_jammer(scenario, everywhere, quiet, no_jammer_levels=quiet,
+                         report_sigma_db=0.3).count == 0
+
+
 def test_the_ideal_model_vouches_only_where_the_survey_map_keeps_to_it(scenario, shadowed):
     """Its spread: the survey map's departure and the receivers' noise, added in quadrature
     (0.3 and 0.4 dB give 0.5 dB), and none at all once over half icc2021's narrowest band,

@@ -556,12 +556,15 @@ def test_background_adaptation_publishes_without_blocking(mapping_scenario, no_j
 def _never_converging(monkeypatch, scenario, no_jammer_map, min_samples: int,
                       hypotheses: bool = True):
     """A mapper whose jammer estimate never converges (and, without ``hypotheses``, whose
-    uploads never place a provisional map either), after 5 s of 20 UAVs with no jammer:
-    (mapper, clock, fleet, what it publishes)."""
+    uploads never place a provisional map either), its count of jammers left as the uploads
+    give it, after 5 s of 20 UAVs with no jammer: (mapper, clock, fleet, what it
+    publishes)."""
     import cloud_service.sinr_mapping as mapping
 
+    locate = mapping.locate_jammer
     monkeypatch.setattr(mapping, "locate_jammer", lambda *args, **kwargs: JammerFit(
-        None, jammer_hypotheses(*args, **kwargs) if hypotheses else None))
+        None, jammer_hypotheses(*args, **kwargs) if hypotheses else None,
+        locate(*args, **kwargs).count))
     network, accuracy = no_jammer_map
     published: list[PublishedWeights] = []
     mapper, now = _online(scenario, network, accuracy, publish=published.append,
@@ -578,6 +581,7 @@ def test_an_estimate_that_does_not_converge_is_never_published(mapping_scenario,
     even place a provisional map's hypotheses)."""
     mapper, now, fleet, published = _never_converging(monkeypatch, mapping_scenario,
                                                       no_jammer_map, 3000, hypotheses=False)
+    assert mapper.state()["jammers_counted"] == 0  # the survey map: the world with none
     _fly(mapper, fleet, mapping_scenario, TABLE_I_JAMMERS[0], 40, 5, now)
     types = _types(mapper)
     assert "jammer_estimated" not in types and types[:3] == [
@@ -599,6 +603,9 @@ def test_provisional_maps_go_out_until_an_estimate_converges(mapping_scenario, n
     while len(published) < 2 and now[0] < 60:
         _fly(mapper, fleet, mapping_scenario, jammer, 1, int(now[0]) + 1, now)
     assert mapper.state()["phase"] == "estimating" and mapper.state()["provisional"]
+    # Each provisional map counts the world's one jammer, which it cannot place yet.
+    assert [w.jammers_counted for w in published] == [1] * len(published)
+    assert mapper.state()["jammers_counted"] == 1
     # Until the DNN alone publishes, and no further: the map of the paper's path may be
     # contradicted again later, which would start another change (and more provisional maps).
     while not any(e["type"] == "sinr_weights_published" and not e["provisional"]
