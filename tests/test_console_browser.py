@@ -9,6 +9,7 @@ the test fails, it never skips."""
 
 from __future__ import annotations
 
+import asyncio
 import errno
 import json
 import os
@@ -181,3 +182,56 @@ def test_the_console_shows_the_live_system_and_moves_the_jammer(supervisor, caps
     assert killed in [p["pid"] for p in report["processes"] if p["role"] == "console"]
     assert report["restarts"]["console"] == 1
     assert all(gone(p["pid"]) for p in report["processes"])
+
+
+def test_the_panel_shows_the_jammers_counted_before_they_are_placed(scenario):
+    """The page itself, fed by a console state with no bus: while a provisional map is in
+    service it says how many jammers the cloud counted; then the estimate that places them,
+    each jammer of the set with its id and a moving one with its velocity."""
+    from playwright.sync_api import sync_playwright
+
+    from jamnav.console.server import _serve, build_app
+    from jamnav.console.state import ConsoleState
+    from shared.events import SinrWeightsPublished
+    from shared.jammer_messages import JammerEstimate
+
+    def published(version: int, provisional: bool) -> SinrWeightsPublished:
+        return SinrWeightsPublished(t=float(version), source="cloud", version=version,
+                                    accuracy=0.9, sha256="0" * 64, path="m.safetensors",
+                                    provisional=provisional, jammers_counted=2)
+
+    state = ConsoleState()
+    state.on_event(published(3, True))
+    stop = threading.Event()
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    app = build_app(state, None, scenario, stop)  # no jammer requests: no feed
+    server = threading.Thread(target=lambda: asyncio.run(_serve(app, listener, stop)))
+    server.start()
+    text = "document.getElementById('estimate-text').textContent"
+    try:
+        with sync_playwright() as playwright:
+            browser = chromium.launch(playwright)
+            page = browser.new_page()
+            page.goto(f"http://127.0.0.1:{listener.getsockname()[1]}/")
+            page.wait_for_function(f"{text}.startsWith(\"Cloud's count\")")
+            assert page.inner_text("#estimate-text") == (
+                "Cloud's count: 2 jammers, not placed yet (provisional map)")
+            state.on_estimate(JammerEstimate(
+                map_version=4, t=4.0, present=True, x=-25.0, y=15.0, power_w=1.0,
+                effective_power_dbm=10.0, sd_x_m=1.5, sd_y_m=2.0, sd_power_db=0.5,
+                vx_mps=3.0, vy_mps=0.0, measurements=900,
+                others=[JammerEstimate(map_version=4, t=4.0, present=True, id=1, x=25.0,
+                                       y=-10.0, power_w=0.5, effective_power_dbm=7.0,
+                                       sd_x_m=1.0, sd_y_m=1.0, sd_power_db=0.5,
+                                       measurements=900)]))
+            state.on_event(published(4, False))
+            page.wait_for_function(f"{text}.startsWith(\"Cloud's estimate\")")
+            assert page.inner_text("#estimate-text") == (
+                "Cloud's estimate (map v4): 0: (-25.0 ± 1.5, 15.0 ± 2.0) m, 1.00 W, moving "
+                "(3.0, 0.0) m/s; 1: (25.0 ± 1.0, -10.0 ± 1.0) m, 0.50 W")
+            browser.close()
+    finally:
+        stop.set()
+        server.join()

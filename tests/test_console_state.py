@@ -18,7 +18,13 @@ from jamnav.console.maps import CoverageMaps
 from jamnav.console.state import TIMELINE_IN_FRAME, ConsoleState, jammer_request
 from planning.networks import sha256
 from shared.cloud_messages import RasterGrid, SinrMap
-from shared.events import ChangeDetected, JammerChanged, RunFinished, UavOutcomes
+from shared.events import (
+    ChangeDetected,
+    JammerChanged,
+    RunFinished,
+    SinrWeightsPublished,
+    UavOutcomes,
+)
 from shared.jammer_messages import JammerEstimate, JammerInfo, JammerPlace
 from shared.radio import JammerParams, RadioModel
 from shared.shipped import SINR_MAP_NO_JAMMER
@@ -91,6 +97,25 @@ def test_events_count_outcomes_once_follow_the_jammer_and_fill_the_timeline():
     assert state.snapshot()["jammers"] == [] and state.jammer_known
 
 
+def test_a_provisional_map_carries_the_jammers_counted_before_they_are_placed():
+    state = ConsoleState()
+    assert (state.snapshot()["map_provisional"], state.snapshot()["jammers_counted"]) == (
+        False, None)
+
+    def published(version: int, provisional: bool, counted: int | None) -> SinrWeightsPublished:
+        return SinrWeightsPublished(t=T + version, source="cloud", version=version,
+                                    accuracy=0.9, sha256="0" * 64, path="m.safetensors",
+                                    provisional=provisional, jammers_counted=counted)
+
+    state.on_event(published(4, True, 2))
+    view = state.snapshot()
+    assert (view["map_provisional"], view["jammers_counted"]) == (True, 2)
+    assert view["timeline"][-1]["text"] == ("provisional SINR map v4 published, 2 jammers "
+                                            "counted, not placed yet (held-out accuracy 90.0%)")
+    state.on_event(published(5, False, 2))  # the estimate's map: the count placed
+    assert state.snapshot()["map_provisional"] is False
+
+
 def test_the_world_state_says_which_jammers_are_in_force_and_an_older_one_says_nothing():
     state = ConsoleState()
     state.on_world_state(world_state(0, 1, [(0.0, 0.0)]))  # a recording from before it said
@@ -140,8 +165,9 @@ def test_the_frame_keeps_the_newest_timeline_entries_and_is_encoded_once_per_cha
     later, frame = state.encoded_frame()
     assert later > revision
     assert json.loads(frame)["estimate"] == {
-        "present": True, "x": 1.0, "y": 2.0, "power_w": 0.5, "sd_x_m": 1.5, "sd_y_m": 2.5,
-        "sd_power_db": 1.0, "map_version": 4, "measurements": 300}
+        "present": True, "id": 0, "x": 1.0, "y": 2.0, "power_w": 0.5, "sd_x_m": 1.5,
+        "sd_y_m": 2.5, "sd_power_db": 1.0, "vx_mps": None, "vy_mps": None, "map_version": 4,
+        "measurements": 300, "others": []}
 
 
 def test_a_map_no_newer_than_the_one_in_service_is_ignored():

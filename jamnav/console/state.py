@@ -26,8 +26,10 @@ TIMELINE_IN_FRAME = 30  # the newest entries, in every frame: a page that missed
 JAMMER_FIELDS = ("x", "y", "power_w")
 REQUESTS = ('{"x", "y", "power_w"}, the same with "add": true, {"id", "x", "y"}, {"remove": ID} '
             'or {"off": true}')
-ESTIMATE_FIELDS = ("present", "x", "y", "power_w", "sd_x_m", "sd_y_m", "sd_power_db",
-                   "map_version", "measurements")
+# What the page draws and writes of each jammer the cloud estimated; the first jammer's
+# fields and those of each beside it (``others``).
+ESTIMATE_FIELDS = {"present", "id", "x", "y", "power_w", "sd_x_m", "sd_y_m", "sd_power_db",
+                   "vx_mps", "vy_mps", "map_version", "measurements"}
 
 
 class ConsoleState:
@@ -43,6 +45,10 @@ class ConsoleState:
         self.jammer_places: list[JammerPlace] = []
         self.jammer_known = False  # until the world said, "no jammer" is not known either
         self.estimate: JammerEstimate | None = None
+        # As the cloud's newest map was published: whether it is provisional, and how many
+        # jammers the cloud had counted then, placed or not.
+        self.map_provisional = False
+        self.jammers_counted: int | None = None
         self.map: SinrMap | None = None
         self._maps: dict[str, dict[str, Any]] = {}  # "served", "true": what the page draws
         self._map_serials = {"served": 0, "true": 0}
@@ -77,6 +83,9 @@ class ConsoleState:
                 self._follow_jammers(tuple(event.jammers))
             elif event.type == "run_finished":
                 self.finished = True
+            elif event.type == "sinr_weights_published":
+                self.map_provisional = event.provisional
+                self.jammers_counted = event.jammers_counted
             text = describe_event(event.model_dump(mode="json"))
             if text is not None:
                 self._note(event.type, event.t, text)
@@ -191,10 +200,13 @@ class ConsoleState:
             "jammers": self._jammers_view(),
             "jammer_known": self.jammer_known,
             "estimate": None if self.estimate is None else self.estimate.model_dump(
-                include=set(ESTIMATE_FIELDS)),
+                include={**dict.fromkeys(ESTIMATE_FIELDS, True),
+                         "others": {"__all__": ESTIMATE_FIELDS}}),
             "map_version": None if served is None else served.version,
             "map_mode": None if served is None else served.mode,
             "map_accuracy": None if served is None else served.accuracy,
+            "map_provisional": self.map_provisional,
+            "jammers_counted": self.jammers_counted,
             "maps": {which: m["serial"] for which, m in self._maps.items()},
             "counters": {"episodes": len(self._outcomes),
                          **{o.label: labels.count(o.label) for o in FINAL_OUTCOMES}},

@@ -308,15 +308,26 @@
     show("jammer-text", !frame.jammer_known ? "In force: not known yet"
       : frame.jammers.length ? "In force:" : "In force: none");
     renderJammers(frame);
+    show("estimate-text", estimateText(frame));
+    for (const [name, count] of Object.entries(frame.counters)) show(`n-${name}`, count);
+  }
+
+  // While a provisional map is in service the cloud has counted jammers it cannot place yet:
+  // that count, not an older estimate, is what it knows now.
+  function estimateText(frame) {
+    const counted = frame.jammers_counted;
+    if (frame.map_provisional && counted !== null && counted !== undefined) {
+      return `Cloud's count: ${counted} jammer${counted === 1 ? "" : "s"}, not placed yet `
+        + "(provisional map)";
+    }
     const e = frame.estimate;
-    show("estimate-text", !e ? "" : e.present
+    return !e ? "" : e.present
       ? `Cloud's estimate (map v${e.map_version}): ` + estimatedJammers(e).map((j) =>
         `${j.id}: (${j.x.toFixed(1)} ± ${j.sd_x_m.toFixed(1)}, `
         + `${j.y.toFixed(1)} ± ${j.sd_y_m.toFixed(1)}) m, ${j.power_w.toFixed(2)} W`
         + (j.vx_mps === null || j.vx_mps === undefined ? ""
           : `, moving (${j.vx_mps.toFixed(1)}, ${j.vy_mps.toFixed(1)}) m/s`)).join("; ")
-      : `Cloud's estimate (map v${e.map_version}): no jammer`);
-    for (const [name, count] of Object.entries(frame.counters)) show(`n-${name}`, count);
+      : `Cloud's estimate (map v${e.map_version}): no jammer`;
   }
 
   function renderTimeline(entries) {
