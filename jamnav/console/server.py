@@ -175,9 +175,9 @@ def build_app(state: ConsoleState, feed: Feed, scenario: Scenario, stop: threadi
 
 
 async def _serve(app: web.Application, listener: socket.socket, stop: threading.Event) -> None:
-    runner = web.AppRunner(app, access_log=None)
+    runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0)
     await runner.setup()
-    await web.SockSite(runner, listener, shutdown_timeout=1.0).start()
+    await web.SockSite(runner, listener).start()
     try:
         await asyncio.to_thread(stop.wait)
     finally:
