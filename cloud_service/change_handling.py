@@ -19,7 +19,8 @@ class RetrainConfig:
     mapping", the mapper's schedule)."""
 
     # Post-change measurements before the first estimate of the jammer is tried, and between
-    # tries while none converges (four UAVs upload about 40 a second): at least
+    # tries while none converges, or between counts of the jammers while one is refined
+    # (``HandledChange.counting_due``; four UAVs upload about 40 a second): at least
     # ``estimate_every`` more, and ``estimate_growth`` times as many as at the last try, so
     # that a jammer the data cannot place (a fit costs up to a second) is tried ~20 times up
     # to ``min_samples``, not at every upload.
@@ -92,6 +93,15 @@ class HandledChange:
             return False
         return (self.estimate.vx_mps is not None
                 or self._driving_tries_left(latest, online_map))
+
+    def counting_due(self, config: RetrainConfig) -> bool:
+        """Whether to count the jammers again between the refits of a still estimate
+        (``refine_every`` post-change measurements apart): as often as an estimate is tried
+        before one converges, so that a jammer the estimate in service lacks is counted, if
+        not placed, within seconds of the uploads that show it, not at the next refit."""
+        return (self.phase == "refining" and self.estimate.vx_mps is None
+                and self.measurements >= max(self.tried_at + config.estimate_every,
+                                             config.estimate_growth * self.tried_at))
 
     def _driving_tries_left(self, latest: float, online_map: OnlineMap) -> bool:
         return (latest - self.start >= online_map.driving_fit_after_s

@@ -28,7 +28,7 @@ from cloud_service.change_handling import HandledChange, RetrainConfig
 from cloud_service.driving_jammer import driving_refit
 from cloud_service.estimate_inputs import EstimateInputs
 from cloud_service.estimated_jammer import JammerEstimate, JammerHypotheses
-from cloud_service.jammer_estimation import locate_jammer
+from cloud_service.jammer_estimation import JammerFit, locate_jammer
 from cloud_service.jammer_tracking import MOST_WINDOWS_BEHIND, WindowedTracker
 from cloud_service.jammer_withdrawal import (
     CorrectionWatch,
@@ -430,6 +430,8 @@ class OnlineSinrMapper:
             job = "drive"
         if job is None and self._change.tracking_due(self._latest):
             job = "track"
+        if job is None and self._change.counting_due(self.retrain):
+            job = "count"  # last: it changes no map
         self._busy = job is not None
         return job
 
@@ -453,6 +455,8 @@ class OnlineSinrMapper:
                 self._try_driving(change, data)
             elif job == "track":
                 self._follow(change)
+            elif job == "count":
+                self._locate(change, data)
             else:  # "settle": the map stands, the detector watches it
                 self._settle(change)
         except Exception as exc:  # a failed adaptation must not leave the mapper stuck
@@ -464,16 +468,22 @@ class OnlineSinrMapper:
             with self._lock:
                 self._busy = False
 
-    def _try_estimate(self, change: HandledChange, data: MeasurementBatch) -> None:
+    def _locate(self, change: HandledChange, data: MeasurementBatch) -> JammerFit:
+        """The estimator's fit of ``data``, the uploads since ``change`` began; its count of
+        the jammers is the mapper's from now."""
         xy, levels, inputs = self._inputs.of(data)
         located = locate_jammer(self.scenario, xy, levels, **inputs)
-        if self._closing.is_set():
-            return
-        estimate = located.estimate
+        change.tried_at = len(data)
         with self._lock:
             if self._change is change:
                 self._jammers_counted = located.count
-        change.tried_at = len(data)
+        return located
+
+    def _try_estimate(self, change: HandledChange, data: MeasurementBatch) -> None:
+        located = self._locate(change, data)
+        if self._closing.is_set():
+            return
+        estimate = located.estimate
         change.tries += 1
         if estimate is None and change.estimate is not None:
             estimate = change.estimate  # refining: keep the last estimate that converged

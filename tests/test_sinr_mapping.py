@@ -629,6 +629,69 @@ def test_provisional_maps_go_out_until_an_estimate_converges(mapping_scenario, n
     assert (levels[~near] == truth[~near]).mean() >= (survey[~near] == truth[~near]).mean() - 0.02
 
 
+def test_the_jammers_are_counted_again_between_refits_and_no_map_changes(
+        mapping_scenario, no_jammer_map, monkeypatch):
+    """Once an estimate converged the map is refitted every ``refine_every`` uploads; in
+    between, the jammers are counted again as often as an estimate is tried before one
+    converges (every 25 % more uploads), and the mapper's count is the newest. Those counts
+    publish nothing: the maps and events are those of a mapper that does not count between
+    refits."""
+    import cloud_service.sinr_mapping as mapping
+
+    network, accuracy = no_jammer_map
+    locate, tried = mapping.locate_jammer, []
+
+    def counted(*args, **kwargs):
+        tried.append(len(args[1]))
+        return locate(*args, **kwargs)
+
+    def flight() -> tuple[list[dict], list[int]]:
+        tried.clear()
+        mapper, now = _online(mapping_scenario, network, accuracy, background=False, seed=3)
+        fleet = Fleet(mapping_scenario, 20, np.random.default_rng(11))
+        _fly(mapper, fleet, mapping_scenario, None, 20, 0, now)
+        _fly(mapper, fleet, mapping_scenario, TABLE_I_JAMMERS[0], 12, 20, now)
+        assert mapper.state()["phase"] == "refining"
+        assert mapper.state()["jammers_counted"] == 1
+        return [{k: v for k, v in e.items() if k != "train_seconds"}
+                for e in mapper.events], list(tried)
+
+    monkeypatch.setattr(mapping, "locate_jammer", counted)
+    events, tries = flight()
+    monkeypatch.setattr(HandledChange, "counting_due", lambda self, config: False)
+    assert flight()[0] == events
+    # Each fit reads all the uploads since the change, as the try before it did.
+    fits = [e["samples"] for e in events if e["type"] == "sinr_weights_published"]
+    config = RetrainConfig()
+    counts = [(earlier, later) for earlier, later in zip(tries, tries[1:], strict=False)
+              if later > fits[0] and later not in fits]
+    assert any(fits[0] < later < fits[1] for _, later in counts)
+    assert all(later >= max(earlier + config.estimate_every, config.estimate_growth * earlier)
+               for earlier, later in counts)
+
+
+def test_a_still_estimate_is_counted_again_between_refits_and_a_driving_one_is_not():
+    """By hand: 25 % more uploads than at the last try (and 40 at least), while a converged,
+    confirmed estimate of jammers standing still is refined."""
+    config = RetrainConfig()
+    still = EstimatedJammer(True, 0.0, 0.0, 1.0, 10.0, 1.0, 1.0, 0.5, 400, 20.0)
+    change = HandledChange(start=0.0, detected_at=0.0, measurements=500, estimate=still,
+                           tried_at=400, fitted_at=400, confirmed=True)
+    assert change.counting_due(config)
+    change.measurements = 499
+    assert not change.counting_due(config)
+    change.measurements = 500
+    change.confirmed = False  # not yet confirmed: its own tries, no counts between
+    assert not change.counting_due(config)
+    change.confirmed = True
+    change.estimate = still._replace(vx_mps=3.0, vy_mps=0.0)  # fitted again as it drives
+    assert not change.counting_due(config)
+    change.estimate, change.tried_at, change.measurements = still, 100, 139  # 40 more: 140
+    assert not change.counting_due(config)
+    change.measurements = 140
+    assert change.counting_due(config)
+
+
 def test_the_dnn_alone_waits_for_the_estimators_tries():
     """A large fleet brings ``min_samples`` in before the estimate is tried twice: the
     estimator tries on, growing its data, until ``min_tries``; then the DNN alone may go."""
