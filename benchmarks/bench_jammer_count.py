@@ -4,7 +4,7 @@ settings, ten each of 0, 1, 2 and 3 jammers, each anywhere in the area at a powe
 scenario's training range; uploads come from ``online_map_sim.Fleet``.
 
 A count is right where it is the true number of jammers, whether or not each is placed yet
-(its estimate converged); the figures also say where every jammer was placed too.
+(its estimate converged); the figures also tell the counts right with every jammer placed.
 
 First the cloud itself: its mapper flown over a quiet spell and then 20 s of the jammers, and
 its count at the end (none when it detected no change: no jammer), beside the estimate behind
@@ -66,7 +66,6 @@ UAVS = 4  # the target's
 # A denser fleet, to tell what the search loses from what the uploads lack: 16 UAVs also met
 # the convoy's tracking target.
 DENSER_UAVS = 16
-
 
 
 class Counted(NamedTuple):
