@@ -160,8 +160,8 @@ def _decide(scenario: Scenario, searched: _Searched, presence_llr: float, exclus
       of the posterior."""
     evidence, search, llr = searched
     if llr.max() < presence_llr:
-        excluded = llr[search.in_area, search.middle_of_range] < -exclusion_llr
-        return _absent(len(evidence.xy), float(llr.max())) if excluded.all() else None
+        return (_absent(len(evidence.xy), float(llr.max()))
+                if _ruled_out(searched, exclusion_llr) else None)
     best_position, best_power = np.unravel_index(llr.argmax(), llr.shape)
     if search.on_edge[best_position] or best_power in (0, len(search.powers_dbw) - 1):
         return None
@@ -169,6 +169,13 @@ def _decide(scenario: Scenario, searched: _Searched, presence_llr: float, exclus
     if fine.worst_sd_m > max_position_sd_m:
         return None
     return _present(scenario, fine, len(evidence.xy), fine_llr)
+
+
+def _ruled_out(searched: _Searched, exclusion_llr: float) -> bool:
+    """Whether the data rules out a jammer of the training range's middle power everywhere in
+    the area: its LLR below ``-exclusion_llr`` at every coarse node there."""
+    _, search, llr = searched
+    return bool((llr[search.in_area, search.middle_of_range] < -exclusion_llr).all())
 
 
 def jammer_hypotheses(
@@ -287,12 +294,11 @@ def _counted(scenario: Scenario, reports: Reports, reading: _Reading, report_sig
 
 def _shown(searched: _Searched, placed: list[Placed]) -> int | None:
     """How many jammers the reports show, placed or not: those ``_greedy_placed`` placed, or
-    none where the reports rule out a jammer everywhere (``_decide``); None while they can
+    none where the reports rule out a jammer everywhere (``_ruled_out``); None while they can
     tell neither."""
     if placed:
         return len(placed)
-    _, search, llr = searched
-    return 0 if (llr[search.in_area, search.middle_of_range] < -EXCLUSION_LLR).all() else None
+    return 0 if _ruled_out(searched, EXCLUSION_LLR) else None
 
 
 def one_more_evidence(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
