@@ -19,11 +19,12 @@ longer flights bring.
 
 Then what the idealized world's 20 s and 120 s hold for any search: in how many settings
 every jammer changes the level of some report (with it and without it, the others there),
-and in how many the cloud's likelihood would count right were the search perfect: each
-jammer, the others given where they are, explains the uploads by more than the rule asks
-(``PRESENCE_LLR`` alone, BIC's penalty beside others), and one more, all of them given, does
-not. That flatters the likelihood: a search weighs each jammer against the others placed
-wherever they explain the uploads best, which may explain them better than the true others.
+and in how many the cloud's likelihood would count right were the search perfect: the true
+jammers, each placed at its best with the others known as the search places them, explain
+the uploads better than every set of one fewer, placed alike, by more than the rule asks
+(``PRESENCE_LLR`` alone, BIC's penalty beside others), and one more, all of them known, does
+not. With the others where they truly are instead, each jammer seemed to pay its way more
+often: the others, placed at their best without it, explain some of what it explains.
 
 Last, the cloud's count, the estimator's and that ceiling in the idealized world after 20 s
 of a denser fleet (``DENSER_UAVS``): whether the target lies past what four UAVs' uploads hold
@@ -39,7 +40,12 @@ from benchmarks.common import Figure
 from cloud_service.change_handling import RetrainConfig
 from cloud_service.estimate_inputs import EstimateInputs
 from cloud_service.estimated_jammer import JammerEstimate
-from cloud_service.jammer_estimation import PRESENCE_LLR, locate_jammer, one_more_evidence
+from cloud_service.jammer_estimation import (
+    PRESENCE_LLR,
+    locate_jammer,
+    one_more_evidence,
+    placed_evidence,
+)
 from cloud_service.map_refit import prior_positions
 from cloud_service.online_map_sim import Fleet, SimulatedClock
 from cloud_service.report_models import ReportModels
@@ -153,9 +159,7 @@ def evidence_figures(scenario: Scenario, flight_s: float, uavs: int = UAVS) -> l
         truth = radio.evaluate(xy, jammers).level
         visible += all((radio.evaluate(xy, _others(jammers, i)).level != truth).any()
                        for i in range(len(jammers)))
-        countable += (all(_one_more_counted(scenario, xy, levels, keywords,
-                                            _others(jammers, i)) for i in range(len(jammers)))
-                      and not _one_more_counted(scenario, xy, levels, keywords, jammers))
+        countable += _counted_by_a_perfect_search(scenario, xy, levels, keywords, jammers)
     name = f"{scenario.name}, {flight_s:.0f} s of {uavs} UAVs"
     return [Figure(f"{name}: settings where each jammer changes a report's level", visible,
                    f"of {SETTINGS}"),
@@ -163,16 +167,26 @@ def evidence_figures(scenario: Scenario, flight_s: float, uavs: int = UAVS) -> l
                    f"of {SETTINGS}")]
 
 
-def _one_more_counted(scenario: Scenario, xy: np.ndarray, levels: np.ndarray, keywords: dict,
-                      known: list[JammerParams]) -> bool:
-    """Whether the cloud's likelihood, searched perfectly, counts one jammer more than
-    ``known``: past ``PRESENCE_LLR`` alone, past BIC's penalty beside others."""
-    llr, penalty = one_more_evidence(scenario, xy, levels,
-                                     [_placed(scenario, jammer) for jammer in known], **keywords)
-    return llr > (penalty if known else PRESENCE_LLR)
+def _counted_by_a_perfect_search(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
+                                 keywords: dict, jammers: list[JammerParams]) -> bool:
+    """Whether the cloud's likelihood, searched perfectly, counts ``jammers``: the true set,
+    each placed at its best with the others known, explains the uploads better than each of
+    its sets of one fewer, placed alike, by more than the rule asks (``PRESENCE_LLR`` for one
+    alone, BIC's penalty beside others); and one more, all of them known, does not."""
+    placed = [_placed(scenario, jammer) for jammer in jammers]
+    if placed:
+        placed, log_likelihood, penalty = placed_evidence(scenario, xy, levels, placed,
+                                                          **keywords)
+        for index in range(len(placed)):
+            _, fewer, _ = placed_evidence(scenario, xy, levels, _others(placed, index),
+                                          **keywords)
+            if log_likelihood - fewer <= (penalty if len(placed) > 1 else PRESENCE_LLR):
+                return False
+    llr, penalty = one_more_evidence(scenario, xy, levels, placed, **keywords)
+    return llr <= (penalty if placed else PRESENCE_LLR)
 
 
-def _others(jammers: list[JammerParams], index: int) -> list[JammerParams]:
+def _others(jammers: list, index: int) -> list:
     return jammers[:index] + jammers[index + 1:]
 
 

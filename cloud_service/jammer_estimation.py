@@ -208,6 +208,7 @@ Placed = tuple[np.ndarray, float]
 # A jammer's parameters, for BIC's penalty on one jammer more: its x, y and power.
 JAMMER_PARAMETERS = 3
 PLACING_ROUNDS = 4  # of placing each jammer again with the others known (``_placed_again``)
+REFINING_GRIDS = 2  # finer grids a jammer placed finer is sought on (``_best_placed``)
 
 
 def estimate_jammers(
@@ -330,24 +331,78 @@ def _of_expected_powers(scenario: Scenario, searched: _Searched) -> _Searched:
                                           searched.llr, -np.inf))
 
 
-def _best_placed(searched: _Searched) -> Placed:
-    """The coarse search's best hypothesis."""
-    position, power = np.unravel_index(searched.llr.argmax(), searched.llr.shape)
-    return searched.search.positions[position], float(searched.search.powers_dbw[power])
+def _best_placed(searched: _Searched, finer: bool = False) -> Placed:
+    """The coarse search's best hypothesis; ``finer``, placed again on ``REFINING_GRIDS``
+    grids of ``FINE_NODES`` per side and per power around it, the first one coarse step each
+    way, each next a sixth of the last, over the powers the search weighed. The greedy
+    search places on the coarse grid; a jammer left there may cost the uploads more
+    log-likelihood than BIC's penalty, which what a set explains at best must not count
+    (``placed_evidence``; BENCHMARKS.md, "The count's ceiling, each jammer placed finer")."""
+    position_index, power_index = np.unravel_index(searched.llr.argmax(), searched.llr.shape)
+    position = searched.search.positions[position_index]
+    power = float(searched.search.powers_dbw[power_index])
+    if not finer:
+        return position, power
+    weighed = searched.search.powers_dbw[np.isfinite(searched.llr).any(axis=0)]
+    best_llr = float(searched.llr.max())
+    half_width, half_power_db = COARSE_SPACING_M, COARSE_POWER_STEP_DB
+    for _ in range(REFINING_GRIDS):
+        positions = _square_grid(position, half_width)
+        powers_dbw = np.clip(power + np.linspace(-half_power_db, half_power_db, FINE_NODES),
+                             weighed.min(), weighed.max())
+        llr = searched.evidence.log_likelihood_ratios(positions, powers_dbw)
+        at = np.unravel_index(llr.argmax(), llr.shape)
+        if llr[at] > best_llr:
+            position, power, best_llr = positions[at[0]], float(powers_dbw[at[1]]), llr[at]
+        half_width, half_power_db = half_width / 6.0, half_power_db / 6.0
+    return position, power
 
 
 def _placed_again(scenario: Scenario, reports: Reports, reading: _Reading,
-                  report_sigma_db: float, placed: list[Placed]) -> list[Placed]:
-    """Each of ``placed`` placed again, in turn, with all the others known, round after
-    round until a round moves none (at most ``PLACING_ROUNDS``)."""
+                  report_sigma_db: float, placed: list[Placed],
+                  finer: bool = False) -> list[Placed]:
+    """Each of ``placed`` placed again (``_best_placed``), in turn, with all the others
+    known, round after round until a round moves none by more than a node of the finest
+    grid (at most ``PLACING_ROUNDS``): placed finer, a jammer shifts a little with each move
+    of the others."""
     for _ in range(PLACING_ROUNDS):
-        before = [(tuple(position), power) for position, power in placed]
+        before = list(placed)
         for index in range(len(placed)):
             placed[index] = _best_placed(_coarse_search(
-                scenario, reports, reading, report_sigma_db, placed[:index] + placed[index + 1:]))
-        if [(tuple(position), power) for position, power in placed] == before:
+                scenario, reports, reading, report_sigma_db, placed[:index] + placed[index + 1:]),
+                finer)
+        if all(_settled(old, new) for old, new in zip(before, placed, strict=True)):
             break
     return placed
+
+
+def _settled(before: Placed, after: Placed) -> bool:
+    """Whether a jammer placed again moved by at most a node of ``_best_placed``'s finest
+    grid, in place and in power."""
+    finest = 2.0 / (FINE_NODES - 1) / 6.0 ** (REFINING_GRIDS - 1)  # of the first grid's span
+    return (math.dist(before[0], after[0]) <= finest * COARSE_SPACING_M * (1 + 1e-9)
+            and abs(before[1] - after[1]) <= finest * COARSE_POWER_STEP_DB * (1 + 1e-9))
+
+
+def placed_evidence(scenario: Scenario, xy: np.ndarray, levels: np.ndarray,
+                    jammers: Sequence[Placed], *, reported_db: np.ndarray | None = None,
+                    no_jammer_levels: np.ndarray | None = None,
+                    no_jammer_db: SinrBelief | None = None,
+                    report_sigma_db: float = REPORT_SIGMA_DB,
+                    ) -> tuple[list[Placed], float, float] | None:
+    """What the uploads say of a set of ``jammers`` (each its position and effective power,
+    dBW) at its best: each placed again, finer, with the others known (``_placed_again``);
+    the uploads' weighted log-likelihood with them, as ``estimate_jammers`` weighs a set; and
+    BIC's penalty for one jammer more. None with too few located reports."""
+    reports = Reports.of(scenario, xy, levels, reported_db)
+    reading = _Reading(no_jammer_levels, no_jammer_db)
+    evidence = _evidence(scenario, reports, reading, report_sigma_db)
+    if evidence is None:
+        return None
+    placed = _placed_again(scenario, reports, reading, report_sigma_db, list(jammers),
+                           finer=True)
+    return (placed, _evidence(scenario, reports, reading, report_sigma_db, placed).no_jammer,
+            _penalty(evidence))
 
 
 class JammerFit(NamedTuple):
