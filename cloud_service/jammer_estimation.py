@@ -335,9 +335,10 @@ def _best_placed(searched: _Searched, finer: bool = False) -> Placed:
     """The coarse search's best hypothesis; ``finer``, placed again on ``REFINING_GRIDS``
     grids of ``FINE_NODES`` per side and per power around it, the first one coarse step each
     way, each next a sixth of the last, over the powers the search weighed. The greedy
-    search places on the coarse grid; a jammer left there may cost the uploads more
-    log-likelihood than BIC's penalty, which what a set explains at best must not count
-    (``placed_evidence``; BENCHMARKS.md, "The count's ceiling, each jammer placed finer")."""
+    search places on the coarse grid. On its nodes a jammer may explain the uploads worse
+    than at its own place by more than BIC's penalty, so a set is weighed at its best placed
+    finer (``placed_evidence``; BENCHMARKS.md, "The count's ceiling, each jammer placed
+    finer")."""
     position_index, power_index = np.unravel_index(searched.llr.argmax(), searched.llr.shape)
     position = searched.search.positions[position_index]
     power = float(searched.search.powers_dbw[power_index])

@@ -245,7 +245,7 @@ def test_the_evidence_for_one_jammer_more_falls_once_the_jammers_are_known(scena
 
 
 def test_a_set_is_weighed_placed_finer_than_the_coarse_grid(scenario):
-    """Two jammers off the coarse grid's nodes (2.7 and 3.1 m from the nearest), exact reports
+    """Two jammers off the coarse grid's nodes (3.1 and 2.7 m from the nearest), exact reports
     read at 0.3 dB, the set given 3.6 m and 1 dB off: each is placed again, finer, nearer
     than any node (measured: 0.3 and 0.8 m, 0.13 and 0.05 dB), and the set explains the
     reports better than either alone by more than BIC's penalty."""
